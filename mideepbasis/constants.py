@@ -1,0 +1,104 @@
+"""Capture geometry, shading and I/O defaults: every default lives here, once.
+
+Units are given in brackets. Distances are in patch half-widths: the sample is
+the square [-1, 1]^2 in the plane z = 0 (DESIGN section 2).
+"""
+
+from __future__ import annotations
+
+import math
+
+# --- capture geometry --------------------------------------------------------------------------
+
+#: Default field of view of the capture camera along the image width [deg].
+DEFAULT_FOV_DEG = 45.0
+
+#: Largest hand-held offset of the co-located camera and flash from the ideal, centred capture,
+#: measured as the angle atan(|t| / H) seen from the sample centre [deg] (DeepBasis: delta).
+MAX_OFFSET_DEG = 16.33
+
+#: Training offsets are drawn per axis from N(0, (delta / OFFSET_SIGMA_DIVISOR)^2) and clipped at delta.
+OFFSET_SIGMA_DIVISOR = 3.0
+
+#: Default working resolution of captures and training crops [pixels].
+DEFAULT_RESOLUTION = 256
+
+
+def camera_height(fov_deg: float = DEFAULT_FOV_DEG) -> float:
+    """Height H of the camera above the sample so that the sample fills the frame.
+
+    Args:
+        fov_deg: field of view along the image width [deg].
+
+    Returns:
+        H = 1 / tan(fov / 2) [patch half-widths].
+    """
+    if not 0.0 < fov_deg < 180.0:
+        raise ValueError(f"field of view must lie in (0, 180) degrees, got {fov_deg}")
+    return 1.0 / math.tan(math.radians(fov_deg) / 2.0)
+
+
+# --- shading -------------------------------------------------------------------------------------
+
+#: The shading conventions every renderer, reader and checkpoint names (DESIGN section 2).
+CONVENTIONS = ("physical", "deepbasis")
+
+#: The convention used where none is given.
+DEFAULT_CONVENTION = "physical"
+
+#: Clamp applied by the `deepbasis` convention to every cosine before use [unitless].
+DEEPBASIS_COSINE_EPS = 1e-12
+
+#: Smallest roughness the `deepbasis` convention lets through [unitless].
+DEEPBASIS_MIN_ROUGHNESS = 1e-3
+
+#: Radiant intensity of the `deepbasis` lamp [relative]; their networks were trained with 1.
+DEEPBASIS_LAMP_INTENSITY = 1.0
+
+#: Lighting-mark reference material: diffuse albedo, specular albedo (F0) and roughness [unitless].
+LIGHTING_MARK_DIFFUSE = 0.1
+LIGHTING_MARK_SPECULAR = 0.5
+LIGHTING_MARK_ROUGHNESS = 0.15
+
+#: Smallest roughness the `physical` convention lets through, so alpha = r^2 stays a normal
+#: float32 and the GGX peak stays finite [unitless].
+PHYSICAL_MIN_ROUGHNESS = 1e-3
+
+# --- basis model ---------------------------------------------------------------------------------
+
+#: Number of basis materials N.
+NUM_BASES = 10
+
+#: Parameters of one basis material: normal 3, diffuse 3, roughness 1, specular 3.
+BASIS_CHANNELS = 10
+
+#: Weight of the variation-consistency loss: L = L_sup + VC_LOSS_WEIGHT * L_vc.
+VC_LOSS_WEIGHT = 0.05
+
+# --- rendering -----------------------------------------------------------------------------------
+
+#: Samples per pixel of path-traced previews.
+DEFAULT_SPP = 64
+
+#: Elevation of the environment-preview camera above the sample plane [deg].
+PREVIEW_ELEVATION_DEG = 50.0
+
+#: Distance of the environment-preview camera from the sample centre [patch half-widths].
+PREVIEW_DISTANCE = 4.0
+
+#: Field of view of the environment-preview camera [deg].
+PREVIEW_FOV_DEG = 40.0
+
+#: Resolution of the environment preview [pixels].
+PREVIEW_RESOLUTION = 256
+
+# --- image I/O -----------------------------------------------------------------------------------
+
+#: Largest image accepted on read, against decompression bombs [pixels].
+MAX_IMAGE_PIXELS = 64 * 1024 * 1024
+
+#: Tolerance on |n| - 1 for a normal to count as unit length [unitless].
+UNIT_NORMAL_TOLERANCE = 1e-3
+
+#: Tolerance on the [0, 1] range of diffuse, roughness and specular maps [unitless].
+RANGE_TOLERANCE = 1e-4

@@ -1,0 +1,117 @@
+"""Rendering: the one place that picks the Mitsuba variant, finds LLVM and registers plugins.
+
+Importing this package
+
+1. makes sure drjit's LLVM backend gets a compatible ``libLLVM`` (drjit 1.5 aborts the
+   process with LLVM 15 and 16, and cannot load LLVM 14 or older): ``DRJIT_LIBLLVM_PATH``
+   is set to the newest compatible library found when it is unset, and a clear
+   ``LLVMNotFoundError`` is raised where only incompatible ones exist;
+2. sets the Mitsuba variant, unless one is set already: ``$MIDEEPBASIS_VARIANT`` if given,
+   else ``cuda_ad_rgb`` where torch sees a CUDA device, else ``llvm_ad_rgb``;
+3. registers the ``svbrdf`` BSDF plugin.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from ..errors import MideepbasisError
+
+#: Oldest LLVM major version drjit 1.5 runs with here; 15 and 16 crash it, 14 does not load.
+MIN_LLVM_MAJOR = 17
+
+#: Folders searched for libLLVM, in order (Debian/Ubuntu multiarch, Fedora, Homebrew, ...).
+LLVM_SEARCH_DIRS = (
+    "/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
+    "/usr/local/lib", "/opt/homebrew/opt/llvm/lib", "/usr/local/opt/llvm/lib",
+)
+
+_LLVM_NAME = re.compile(r"^libLLVM(?:-(\d+))?(?:\.so|\.dylib)(?:\.(\d+))?(?:\.[\d.]+)?$")
+
+_FIX = "install LLVM 19 (Debian/Ubuntu: `apt-get install libllvm19`) or set DRJIT_LIBLLVM_PATH to a libLLVM of version 17 or newer"
+
+
+class LLVMNotFoundError(MideepbasisError):
+    """No libLLVM that drjit's LLVM backend can use was found."""
+
+
+def llvm_major_version(path: str | os.PathLike) -> int | None:
+    """Major LLVM version of a libLLVM file, read from its (resolved) name; None if unknown."""
+    for candidate in (Path(path), Path(os.path.realpath(path))):
+        match = _LLVM_NAME.match(candidate.name)
+        if match and (match.group(1) or match.group(2)):
+            return int(match.group(1) or match.group(2))
+    return None
+
+
+def find_libllvm(search_dirs=LLVM_SEARCH_DIRS) -> list[tuple[int, Path]]:
+    """All libLLVM libraries in ``search_dirs`` and ``/usr/lib/llvm-*/lib``, newest first.
+
+    Returns:
+        (major version, path) pairs, one per version.
+    """
+    folders = [Path(d) for d in search_dirs]
+    folders += sorted(Path("/usr/lib").glob("llvm-*/lib")) if tuple(search_dirs) == LLVM_SEARCH_DIRS else []
+    found: dict[int, Path] = {}
+    for folder in folders:
+        if not folder.is_dir():
+            continue
+        for entry in sorted(folder.iterdir()):
+            if _LLVM_NAME.match(entry.name) and entry.exists():
+                version = llvm_major_version(entry)
+                if version is not None and version not in found:
+                    found[version] = entry
+    return sorted(found.items(), reverse=True)
+
+
+def ensure_llvm(search_dirs=LLVM_SEARCH_DIRS) -> Path:
+    """Point drjit at a compatible libLLVM, or raise ``LLVMNotFoundError`` naming the fix.
+
+    Returns:
+        the library drjit will load.
+    """
+    chosen = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if chosen:
+        if not Path(chosen).is_file():
+            raise LLVMNotFoundError(f"DRJIT_LIBLLVM_PATH={chosen} does not exist: {_FIX}")
+        version = llvm_major_version(chosen)
+        if version is not None and version < MIN_LLVM_MAJOR:
+            raise LLVMNotFoundError(f"DRJIT_LIBLLVM_PATH={chosen} is LLVM {version}, which drjit 1.5 cannot use: {_FIX}")
+        return Path(chosen)
+    found = find_libllvm(search_dirs)
+    compatible = [(version, path) for version, path in found if version >= MIN_LLVM_MAJOR]
+    if not compatible:
+        seen = ", ".join(f"LLVM {version} ({path})" for version, path in found) or "no libLLVM at all"
+        raise LLVMNotFoundError(f"found {seen}, none usable by drjit 1.5: {_FIX}")
+    os.environ["DRJIT_LIBLLVM_PATH"] = str(compatible[0][1])
+    return compatible[0][1]
+
+
+def _choose_variant() -> str:
+    requested = os.environ.get("MIDEEPBASIS_VARIANT")
+    if requested:
+        return requested
+    try:
+        import torch
+        if torch.cuda.is_available():
+            return "cuda_ad_rgb"
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass
+    return "llvm_ad_rgb"
+
+
+def _initialise() -> None:
+    import mitsuba as mi
+
+    if mi.variant() is None:
+        variant = _choose_variant()
+        if variant.startswith("llvm"):
+            ensure_llvm()
+        mi.set_variant(variant)
+
+
+_initialise()
+
+from . import bsdf  # noqa: E402  (registers the plugin once the variant is set)

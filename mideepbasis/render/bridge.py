@@ -1,0 +1,67 @@
+"""The only crossing between torch and drjit: ``dr.wrap`` around the per-pixel flash render.
+
+Torch tensors are (B, C, H, W); the plugin's textures are (B*H, W, C). The layout changes
+happen here, on the torch side of the crossing, so that torch's autograd handles them and
+drjit sees contiguous textures. Gradients flow to all four maps and to the light positions.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import torch
+
+from .. import constants
+from .flash import FlashRenderer
+
+_renderers: dict[str, FlashRenderer] = {}
+
+
+def flash_renderer(convention: str) -> FlashRenderer:
+    """The shared ``FlashRenderer`` of a convention (one plugin instance per convention)."""
+    if convention not in constants.CONVENTIONS:
+        raise ValueError(f"unknown shading convention {convention!r}; expected one of {constants.CONVENTIONS}")
+    if convention not in _renderers:
+        _renderers[convention] = FlashRenderer(convention)
+    return _renderers[convention]
+
+
+@dr.wrap(source="torch", target="drjit")
+def _render_flash_drjit(normal, diffuse, roughness, specular, lights, intensity, batch, convention):
+    renderer = flash_renderer(convention)
+    renderer.set_maps(normal, diffuse, roughness, specular)
+    height, width = normal.shape[0] // batch, normal.shape[1]
+    positions = dr.unravel(mi.Point3f, lights.array)
+    return renderer.render(positions, batch, height, width, mi.Float(intensity.array))
+
+
+def _to_texture(maps: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) -> (B*H, W, C), contiguous."""
+    batch, channels, height, width = maps.shape
+    return maps.permute(0, 2, 3, 1).reshape(batch * height, width, channels).contiguous()
+
+
+def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
+                 convention: str = constants.DEFAULT_CONVENTION) -> torch.Tensor:
+    """Per-pixel flash render through the Mitsuba ``svbrdf`` plugin, differentiable in torch.
+
+    Args:
+        maps: (B, 10, H, W) float32 stacked [normal 3, diffuse 3, roughness 1, specular 3].
+        lights: (B, K, 3) camera and flash positions [patch half-widths].
+        intensity: radiant intensity [W/sr] (``physical``) or lamp intensity (``deepbasis``).
+        convention: ``physical`` or ``deepbasis``.
+
+    Returns:
+        linear radiance, (B, K, 3, H, W), on the device and with the dtype of ``maps``.
+    """
+    if maps.ndim != 4 or maps.shape[1] != constants.BASIS_CHANNELS:
+        raise ValueError(f"maps must have shape (B, {constants.BASIS_CHANNELS}, H, W), got {tuple(maps.shape)}")
+    if lights.ndim != 3 or lights.shape[0] != maps.shape[0] or lights.shape[2] != 3:
+        raise ValueError(f"lights must have shape (B, K, 3) with B = {maps.shape[0]}, got {tuple(lights.shape)}")
+    batch, n_lights = lights.shape[:2]
+    normal, diffuse, roughness, specular = torch.split(maps.float(), [3, 3, 1, 3], dim=1)
+    # The light tensor is always handed over so that its gradient exists whenever asked for.
+    image = _render_flash_drjit(_to_texture(normal), _to_texture(diffuse), _to_texture(roughness),
+                                _to_texture(specular), lights.float().reshape(batch * n_lights, 3),
+                                torch.tensor([float(intensity)], device=maps.device), batch, convention)
+    return image.permute(0, 1, 4, 2, 3).to(maps.dtype)

@@ -1,0 +1,92 @@
+"""Per-pixel flash renders of the sample plane: ``bsdf.eval`` over the pixel grid, no ray tracing.
+
+For every material ``b`` of a batch, every light ``k`` and every pixel (row i, col j), the
+pixel sees the plane point ``p = (-1 + (2j + 1) / w, 1 - (2i + 1) / h, 0)``; camera and flash
+sit together at ``c_bk``; the ``svbrdf`` plugin is evaluated with ``wi = wo = normalize(c - p)``
+and the result is scaled by the light's transport factor (``shading.flash_factor``). This is
+DESIGN section 2's ``physical`` formula exactly.
+
+All B x K x h x w evaluations run in one kernel. Light positions, intensity and maps are
+kernel inputs rather than constants, so new positions reuse the compiled kernel.
+
+Layout (Mitsuba side, DESIGN section 3): the maps of a batch are stacked vertically into
+one (B*h, w, C) texture per map; the result is a (B, K, h, w, 3) tensor.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .. import constants
+from . import shading
+from .bsdf import MAP_NAMES
+
+_CHANNELS = {"normal": 3, "diffuse": 3, "roughness": 1, "specular": 3}
+
+
+class FlashRenderer:
+    """Holds one ``svbrdf`` plugin whose four textures are replaced before each render.
+
+    Args:
+        convention: shading convention of the plugin, ``physical`` or ``deepbasis``.
+    """
+
+    def __init__(self, convention: str = constants.DEFAULT_CONVENTION):
+        self.convention = convention
+        textures = {name: {"type": "bitmap", "raw": True, "filter_type": "nearest", "wrap_mode": "clamp",
+                           "data": mi.TensorXf(np.zeros((2, 2, _CHANNELS[name]), np.float32))}
+                    for name in MAP_NAMES}
+        self.bsdf = mi.load_dict({"type": "svbrdf", "convention": convention, **textures})
+        self.params = mi.traverse(self.bsdf)
+
+    def set_maps(self, normal: mi.TensorXf, diffuse: mi.TensorXf, roughness: mi.TensorXf,
+                 specular: mi.TensorXf) -> None:
+        """Load the maps of a batch, each stacked as (B*h, w, C) with C = 3, 3, 1, 3."""
+        for name, data in zip(MAP_NAMES, (normal, diffuse, roughness, specular)):
+            if data.ndim != 3 or data.shape[2] != _CHANNELS[name]:
+                raise ValueError(f"{name} map must have shape (B*h, w, {_CHANNELS[name]}), got {data.shape}")
+            self.params[f"{name}.data"] = data
+        self.params.update()
+
+    def render(self, lights: mi.Point3f, batch: int, height: int, width: int,
+               intensity: float | mi.Float) -> mi.TensorXf:
+        """Render every loaded material under its lights.
+
+        Args:
+            lights: B*K co-located camera and flash positions [patch half-widths], light k of
+                material b at index b*K + k.
+            batch: number B of stacked materials; the loaded maps have B*height rows.
+            height, width: image size h, w [pixels].
+            intensity: radiant intensity of the flash [W/sr] (``physical``) or lamp intensity
+                (``deepbasis``).
+
+        Returns:
+            linear radiance, shape (B, K, h, w, 3).
+        """
+        n_lights = dr.width(lights)
+        if n_lights % batch:
+            raise ValueError(f"{n_lights} lights do not split evenly over {batch} materials")
+        per_material = n_lights // batch
+        n_pixels = height * width
+        index = dr.arange(mi.UInt32, n_lights * n_pixels)
+        light_index = index // n_pixels
+        pixel = index - light_index * n_pixels
+        row = pixel // width
+        col = pixel - row * width
+        material = light_index // per_material
+        row_f, col_f = mi.Float(row), mi.Float(col)
+
+        point = mi.Point3f(dr.fma(2.0, col_f, 1.0) / width - 1.0,
+                           1.0 - dr.fma(2.0, row_f, 1.0) / height, 0.0)
+        to_light = dr.gather(mi.Point3f, lights, light_index) - point
+        direction = dr.normalize(to_light)
+
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.p = point
+        si.uv = mi.Point2f((col_f + 0.5) / width, (mi.Float(material * height + row) + 0.5) / (batch * height))
+        si.wi = direction
+        value = self.bsdf.eval(mi.BSDFContext(), si, direction)
+        radiance = value * shading.flash_factor(self.convention, to_light, intensity)
+        return mi.TensorXf(dr.ravel(radiance), shape=(batch, per_material, height, width, 3))
