@@ -84,7 +84,7 @@ DEFAULT_SPP = 64
 PREVIEW_ELEVATION_DEG = 50.0
 
 #: Distance of the environment-preview camera from the sample centre [patch half-widths].
-PREVIEW_DISTANCE = 4.0
+PREVIEW_DISTANCE = 3.4
 
 #: Field of view of the environment-preview camera [deg].
 PREVIEW_FOV_DEG = 40.0
@@ -102,3 +102,9 @@ UNIT_NORMAL_TOLERANCE = 1e-3
 
 #: Tolerance on the [0, 1] range of diffuse, roughness and specular maps [unitless].
 RANGE_TOLERANCE = 1e-4
+
+# --- materials -----------------------------------------------------------------------------------
+
+#: Specular albedo F0 of dielectrics in the metallic-roughness model, and the default specular of
+#: constant materials [unitless].
+DIELECTRIC_F0 = 0.04

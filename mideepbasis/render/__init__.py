@@ -115,3 +115,31 @@ def _initialise() -> None:
 _initialise()
 
 from . import bsdf  # noqa: E402  (registers the plugin once the variant is set)
+
+
+def render_flash(maps, lights, *, fov: float | None = None, convention: str | None = None,
+                 intensity: float | None = None, backend: str = "mitsuba"):
+    """The flash renderer every part of the pipeline calls: per pixel, batched, differentiable.
+
+    Args:
+        maps: (B, 10, H, W) torch tensor [normal 3, diffuse 3, roughness 1, specular 3].
+        lights: (B, K, 3) co-located camera and flash positions [patch half-widths].
+        fov: field of view [deg] that sets the default intensity (default 45).
+        convention: ``physical`` (default) or ``deepbasis``.
+        intensity: radiant intensity [W/sr]; default ``geometry.flash_intensity(fov, convention)``.
+        backend: ``mitsuba`` (the ``svbrdf`` plugin through the bridge) or ``torch`` (the
+            independent reference, for cross-checks).
+
+    Returns:
+        linear radiance, (B, K, 3, H, W).
+    """
+    from .. import constants, geometry
+    from . import bridge, reference
+
+    convention = convention or constants.DEFAULT_CONVENTION
+    if intensity is None:
+        intensity = geometry.flash_intensity(fov or constants.DEFAULT_FOV_DEG, convention)
+    renderers = {"mitsuba": bridge.render_flash, "torch": reference.render_flash}
+    if backend not in renderers:
+        raise ValueError(f"unknown render backend {backend!r}; expected one of {sorted(renderers)}")
+    return renderers[backend](maps, lights, intensity, convention)

@@ -49,7 +49,7 @@ class SVBRDF(mi.BSDF):
         if self.convention not in constants.CONVENTIONS:
             raise ValueError(f"svbrdf: unknown convention {self.convention!r}; "
                              f"expected one of {constants.CONVENTIONS}")
-        self.textures = {name: (props.get_texture(name) if props.has_property(name)
+        self.textures = {name: (props.get_texture(name) if name in props
                                 else constant_texture(_DEFAULT_VALUES[name]))
                          for name in MAP_NAMES}
         shared = mi.BSDFFlags.FrontSide | mi.BSDFFlags.SpatiallyVarying

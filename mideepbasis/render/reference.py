@@ -12,6 +12,7 @@ import math
 import torch
 
 from .. import constants
+from ..geometry import pixel_points
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -72,15 +73,6 @@ def eval_cosine(convention: str, normal: torch.Tensor, wi: torch.Tensor, wo: tor
         return torch.where(above, value * cos_l, torch.zeros_like(value))
 
     raise ValueError(f"unknown shading convention {convention!r}; expected one of {constants.CONVENTIONS}")
-
-
-def pixel_points(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
-    """Plane points seen by the pixel centres, (3, H, W): x = -1 + (2j + 1) / w, y = 1 - (2i + 1) / h."""
-    rows = torch.arange(height, device=device, dtype=dtype)
-    cols = torch.arange(width, device=device, dtype=dtype)
-    y = (1 - (2 * rows + 1) / height)[:, None].expand(height, width)
-    x = ((2 * cols + 1) / width - 1)[None, :].expand(height, width)
-    return torch.stack([x, y, torch.zeros_like(x)])
 
 
 def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,

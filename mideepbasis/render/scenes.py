@@ -1,0 +1,121 @@
+"""Full Mitsuba scenes around the sample: the flash capture and the environment preview.
+
+The scenes are XML files in ``scenes/`` (installed as ``mideepbasis.scenes``), loaded with
+parameters and then given the material's maps through ``mi.traverse``. Both are path traced
+with the ``svbrdf`` plugin; the flash scene reproduces the per-pixel path (``flash.py``) up to
+Monte Carlo noise and pixel-footprint filtering, which makes it an end-to-end check of the
+plugin inside Mitsuba's own light transport.
+"""
+
+from __future__ import annotations
+
+import math
+from importlib import resources
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import torch
+
+from .. import constants
+from ..errors import InputError
+from .bsdf import MAP_NAMES
+
+#: Environments that ship with the package, by name, and the file of each.
+ENVIRONMENTS = {"studio": "envmaps/studio.exr"}
+
+#: The analytic sky, offered beside the shipped maps.
+SUNSKY = "sunsky"
+
+
+def scenes_dir() -> Path:
+    """Folder of the installed scene files (a wheel has them inside the package)."""
+    return Path(str(resources.files("mideepbasis.scenes")))
+
+
+def _load(name: str, **parameters) -> mi.Scene:
+    return mi.load_file(str(scenes_dir() / name), **{key: str(value) for key, value in parameters.items()})
+
+
+def _as_maps(material) -> torch.Tensor:
+    """(10, H, W) float32 CPU tensor from a Material (``to_tensor``) or a tensor."""
+    maps = material.to_tensor() if hasattr(material, "to_tensor") else torch.as_tensor(material)
+    if maps.ndim != 3 or maps.shape[0] != constants.BASIS_CHANNELS:
+        raise ValueError(f"maps must have shape ({constants.BASIS_CHANNELS}, H, W), got {tuple(maps.shape)}")
+    return maps.detach().float().cpu()
+
+
+def set_material(scene: mi.Scene, material) -> None:
+    """Replace the maps of the scene's ``svbrdf`` material (on the shape with id ``sample``) by ``material``'s."""
+    params = mi.traverse(scene)
+    for name, data in zip(MAP_NAMES, torch.split(_as_maps(material), [3, 3, 1, 3])):
+        params[f"sample.bsdf.{name}.data"] = mi.TensorXf(np.ascontiguousarray(data.permute(1, 2, 0).numpy()))
+    params.update()
+
+
+def flash_scene(material, offset: tuple[float, float] = (0.0, 0.0), fov: float = constants.DEFAULT_FOV_DEG,
+                spp: int = constants.DEFAULT_SPP, resolution: int | None = None,
+                convention: str = constants.DEFAULT_CONVENTION) -> mi.Scene:
+    """The flash capture of DESIGN section 2 as a Mitsuba scene.
+
+    Args:
+        material: a Material or a (10, H, W) tensor of stacked maps.
+        offset: hand-held lateral offset (tx, ty) of camera and flash [patch half-widths].
+        fov: field of view along the image width [deg].
+        spp: samples per pixel.
+        resolution: image width and height [pixels]; defaults to the material's width.
+        convention: shading convention of the plugin. Mitsuba's point light always falls off
+            with the squared distance, so only ``physical`` matches the per-pixel path exactly.
+    """
+    maps = _as_maps(material)
+    height = constants.camera_height(fov)
+    tx, ty = offset
+    scene = _load("flash.xml", spp=spp, resolution=resolution or maps.shape[-1], fov=fov, height=height,
+                  tx=tx, ty=ty, ppx=-tx / 2.0, ppy=ty / 2.0,
+                  intensity=math.pi * height**2, convention=convention)
+    set_material(scene, maps)
+    return scene
+
+
+def preview_scene(material, environment: str = "studio", spp: int = constants.DEFAULT_SPP,
+                  resolution: int = constants.PREVIEW_RESOLUTION,
+                  convention: str = constants.DEFAULT_CONVENTION,
+                  elevation: float = constants.PREVIEW_ELEVATION_DEG,
+                  distance: float = constants.PREVIEW_DISTANCE, fov: float = constants.PREVIEW_FOV_DEG,
+                  scale: float = 1.0) -> mi.Scene:
+    """The sample on a table, seen at an angle under an environment.
+
+    Args:
+        material: a Material or a (10, H, W) tensor of stacked maps.
+        environment: ``studio`` (the shipped HDR map), ``sunsky`` (Mitsuba's analytic sun and
+            sky) or the path of an equirectangular EXR/HDR map (+y up in the map).
+        spp: samples per pixel.
+        resolution: image width and height [pixels].
+        convention: shading convention of the plugin.
+        elevation: camera elevation above the sample plane [deg].
+        distance: camera distance from the sample centre [patch half-widths].
+        fov: camera field of view [deg].
+        scale: radiance scale of the environment [relative].
+    """
+    elevation_rad = math.radians(elevation)
+    camera = {"camera_x": 0.0, "camera_y": -distance * math.cos(elevation_rad),
+              "camera_z": distance * math.sin(elevation_rad)}
+    common = dict(spp=spp, resolution=resolution, preview_fov=fov, convention=convention, env_scale=scale, **camera)
+    if environment == SUNSKY:
+        scene = _load("preview_sunsky.xml", **common)
+    else:
+        path = scenes_dir() / ENVIRONMENTS[environment] if environment in ENVIRONMENTS else Path(environment)
+        if not path.is_file():
+            raise InputError(f"environment {environment!r} is neither {sorted(ENVIRONMENTS)}, "
+                             f"{SUNSKY!r} nor an existing file")
+        scene = _load("preview_envmap.xml", envmap=path.resolve(), **common)
+    set_material(scene, material)
+    return scene
+
+
+def render(scene: mi.Scene, spp: int | None = None, seed: int = 0) -> np.ndarray:
+    """Path trace ``scene``; returns linear radiance, (H, W, 3) float32."""
+    image = mi.render(scene, spp=spp or 0, seed=seed)
+    dr.eval(image)
+    return np.array(image, dtype=np.float32)[..., :3]

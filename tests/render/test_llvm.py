@@ -1,0 +1,56 @@
+"""Finding an LLVM that drjit 1.5 can use, and the one-line error where there is none."""
+
+from __future__ import annotations
+
+import pytest
+
+from mideepbasis.render import LLVMNotFoundError, ensure_llvm, find_libllvm, llvm_major_version
+
+
+def fake_libraries(folder, *names):
+    for name in names:
+        (folder / name).write_bytes(b"")
+    return folder
+
+
+def test_version_is_read_from_debian_and_generic_names(tmp_path):
+    assert llvm_major_version("/usr/lib/x86_64-linux-gnu/libLLVM-19.so.1") == 19
+    assert llvm_major_version("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1") == 19
+    assert llvm_major_version("/opt/homebrew/opt/llvm/lib/libLLVM-17.dylib") == 17
+    (tmp_path / "libLLVM-18.so.1").write_bytes(b"")
+    (tmp_path / "libLLVM.so").symlink_to(tmp_path / "libLLVM-18.so.1")
+    assert llvm_major_version(tmp_path / "libLLVM.so") == 18
+
+
+def test_newest_compatible_llvm_is_chosen(tmp_path, monkeypatch):
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")
+    folder = fake_libraries(tmp_path, "libLLVM-15.so.1", "libLLVM-19.so.1", "libLLVM-17.so", "libfoo.so")
+    assert [version for version, _ in find_libllvm([folder])] == [19, 17, 15]
+    assert ensure_llvm([folder]) == folder / "libLLVM-19.so.1"
+    import os
+    assert os.environ["DRJIT_LIBLLVM_PATH"] == str(folder / "libLLVM-19.so.1")
+
+
+def test_only_incompatible_llvm_stops_with_the_fix(tmp_path, monkeypatch):
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")
+    folder = fake_libraries(tmp_path, "libLLVM-15.so.1", "libLLVM-16.so.1")
+    with pytest.raises(LLVMNotFoundError) as error:
+        ensure_llvm([folder])
+    message = str(error.value)
+    assert "\n" not in message and "apt-get install libllvm19" in message and "LLVM 16" in message
+
+
+def test_no_llvm_at_all_names_the_fix(tmp_path, monkeypatch):
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")
+    with pytest.raises(LLVMNotFoundError, match="no libLLVM at all.*apt-get install libllvm19"):
+        ensure_llvm([tmp_path])
+
+
+def test_explicit_incompatible_path_is_refused(tmp_path, monkeypatch):
+    library = fake_libraries(tmp_path, "libLLVM-15.so.1") / "libLLVM-15.so.1"
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(library))
+    with pytest.raises(LLVMNotFoundError, match="LLVM 15.*apt-get install libllvm19"):
+        ensure_llvm([tmp_path])
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "missing.so"))
+    with pytest.raises(LLVMNotFoundError, match="does not exist"):
+        ensure_llvm([tmp_path])

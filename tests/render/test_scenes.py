@@ -1,0 +1,77 @@
+"""Full Mitsuba scenes: the path-traced flash capture against the per-pixel path, and the previews."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mideepbasis.render import bridge, scenes
+
+#: Mean relative difference allowed between the path-traced flash scene and the per-pixel path.
+FLASH_SCENE_MEAN_RTOL = 5e-3
+
+
+def smooth_material(size: int) -> torch.Tensor:
+    """A (10, H, W) material whose maps vary slowly, so pixel-footprint filtering barely matters."""
+    y, x = torch.meshgrid(torch.linspace(-1, 1, size), torch.linspace(-1, 1, size), indexing="ij")
+    normal = torch.stack([0.2 * torch.sin(3 * x), 0.2 * torch.cos(2 * y), torch.ones_like(x)])
+    normal = normal / normal.norm(dim=0, keepdim=True)
+    diffuse = torch.stack([0.5 + 0.3 * x, 0.4 + 0.2 * y, torch.full_like(x, 0.3)])
+    roughness = (0.4 + 0.2 * x * y)[None]
+    specular = torch.stack([torch.full_like(x, 0.04), 0.3 + 0.2 * y, torch.full_like(x, 0.1)])
+    return torch.cat([normal, diffuse, roughness, specular])
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.3, -0.2)])
+def test_path_traced_flash_scene_agrees_with_per_pixel_path(offset, fov_height):
+    fov, height = fov_height
+    maps = smooth_material(64)
+    traced = scenes.render(scenes.flash_scene(maps, offset=offset, fov=fov, spp=256))
+    light = torch.tensor([[[offset[0], offset[1], height]]])
+    per_pixel = bridge.render_flash(maps[None], light, math.pi * height**2)[0, 0].permute(1, 2, 0).numpy()
+    assert traced.shape == per_pixel.shape == (64, 64, 3)
+    assert np.abs(traced - per_pixel).mean() / per_pixel.mean() < FLASH_SCENE_MEAN_RTOL
+    # A mirrored image (wrong texture orientation) would be far off on this asymmetric material.
+    assert np.abs(traced - per_pixel[::-1]).mean() / per_pixel.mean() > 10 * FLASH_SCENE_MEAN_RTOL
+
+
+@pytest.mark.parametrize("environment", ["studio", "sunsky"])
+def test_environment_preview_shows_the_sample(environment):
+    maps = smooth_material(32)
+    image = scenes.render(scenes.preview_scene(maps, environment=environment, spp=16, resolution=64))
+    assert image.shape == (64, 64, 3) and np.isfinite(image).all()
+    centre = image[28:36, 28:36].mean()
+    assert centre > 0.02  # the lit sample fills the middle of the frame
+    darker = scenes.render(scenes.preview_scene(maps * torch.tensor([1, 1, 1, .2, .2, .2, 1, 1, 1, 1]).view(10, 1, 1),
+                                                 environment=environment, spp=16, resolution=64))
+    assert darker[28:36, 28:36].mean() < 0.8 * centre  # and its material is what we see
+
+
+def test_unknown_environment_is_a_clear_error(tmp_path):
+    with pytest.raises(Exception, match="neither"):
+        scenes.preview_scene(smooth_material(8), environment=str(tmp_path / "missing.exr"))
+
+
+def test_scene_files_are_installed_with_the_package():
+    folder = scenes.scenes_dir()
+    for name in ["flash.xml", "sample.xml", "preview_camera.xml", "preview_envmap.xml", "preview_sunsky.xml",
+                 "envmaps/studio.exr"]:
+        assert (folder / name).is_file(), name
+
+
+@pytest.mark.slow
+def test_wheel_contains_the_scenes(tmp_path):
+    root = Path(__file__).resolve().parents[2]
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                    "-w", str(tmp_path), str(root)], check=True)
+    wheel = next(tmp_path.glob("mideepbasis-*.whl"))
+    names = set(zipfile.ZipFile(wheel).namelist())
+    assert {"mideepbasis/scenes/flash.xml", "mideepbasis/scenes/envmaps/studio.exr",
+            "mideepbasis/scenes/textures/flat_normal.exr", "mideepbasis/render/bsdf.py"} <= names
