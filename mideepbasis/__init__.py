@@ -1,4 +1,13 @@
-"""mideepbasis: SVBRDF capture from one hand-held flash photograph (DeepBasis, SIGGRAPH Asia 2023)."""
+"""mideepbasis: SVBRDF capture from one hand-held flash photograph (DeepBasis, SIGGRAPH Asia 2023).
+
+Public API::
+
+    from mideepbasis import Material, render_material, render_flash
+    material = Material.load("my_material/")
+    image = render_material(material, light="env")          # (H, W, 3) linear, path traced
+
+Rendering imports drjit and Mitsuba on first use (``mideepbasis.render``), not at import.
+"""
 
 from __future__ import annotations
 
@@ -9,4 +18,21 @@ import os
 # ops on a small machine. Passive waiting frees the cores at once (a user's own setting wins).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from .errors import InputError, MideepbasisError  # noqa: E402
+from .imageio import ImageIOError, read_image, write_image  # noqa: E402
+from .material import Material, MaterialError  # noqa: E402
+
 __version__ = "0.1.0"
+
+__all__ = ["Material", "MaterialError", "ImageIOError", "InputError", "MideepbasisError", "read_image",
+           "write_image", "render_material", "render_flash", "__version__"]
+
+_RENDERING = {"render_material": "mideepbasis.render.api", "render_flash": "mideepbasis.render"}
+
+
+def __getattr__(name):
+    if name in _RENDERING:
+        import importlib
+
+        return getattr(importlib.import_module(_RENDERING[name]), name)
+    raise AttributeError(f"module 'mideepbasis' has no attribute {name!r}")

@@ -1,9 +1,10 @@
-"""Make the files the project ships: the studio HDR environment and the default flat textures.
+"""Make the files the project ships: the studio HDR environment, the default flat textures and
+the example material.
 
     .venv/bin/python scripts/make_assets.py
 
 Everything is computed here from closed-form formulas, so the shipped files are our own and
-can be rebuilt bit for bit. Writes into scenes/envmaps/ and scenes/textures/.
+can be rebuilt bit for bit. Writes into scenes/envmaps/, scenes/textures/ and mideepbasis/assets/example_material/.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mideepbasis.imageio import write_image
+from mideepbasis.material import Material
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,6 +56,49 @@ def studio_environment(width: int = 1024, height: int = 512) -> np.ndarray:
     return image.astype(np.float32)
 
 
+def normals_from_height(height: np.ndarray, strength: float) -> np.ndarray:
+    """Unit normals (3, H, W) of a height field (H, W) [patch half-widths per unit height].
+
+    Rows run towards -y (row 0 is the top edge), so d/dy = -d/drow.
+    """
+    rows, cols = height.shape
+    d_dx = np.gradient(height, axis=1) * cols / 2.0
+    d_dy = -np.gradient(height, axis=0) * rows / 2.0
+    normal = np.stack([-strength * d_dx, -strength * d_dy, np.ones_like(height)])
+    return normal / np.linalg.norm(normal, axis=0, keepdims=True)
+
+
+def glazed_tiles(size: int = 256, tiles: int = 4, seed: int = 2023) -> Material:
+    """A 4x4 panel of glazed ceramic tiles in grout: glossy coloured glaze with a slight
+    ripple, per-tile hue variation, bevelled edges and rough recessed grout."""
+    rng = np.random.default_rng(seed)
+    coordinates = (np.arange(size) + 0.5) / size * tiles
+    u, v = np.meshgrid(coordinates, coordinates)
+    tile_u, tile_v = np.floor(u).astype(int), np.floor(v).astype(int)
+    # Distance to the nearest tile edge [tile widths]; grout where it is below half the joint.
+    edge = np.minimum(np.minimum(u % 1, 1 - u % 1), np.minimum(v % 1, 1 - v % 1))
+    joint = 0.035
+    bevel = np.clip((edge - joint) / 0.06, 0.0, 1.0)
+    grout = edge < joint
+    ripple = 0.0006 * np.sin(2 * np.pi * (1.3 * u + 0.7 * v)) * np.sin(2 * np.pi * (1.1 * v - 0.4 * u))
+    height = 0.02 * np.sqrt(bevel) + np.where(grout, 0.0, ripple)
+    normal = normals_from_height(height, strength=tiles / 2.0)
+
+    hue_shift = rng.uniform(-0.06, 0.06, size=(tiles, tiles, 3))
+    base_glaze = np.array([0.10, 0.32, 0.36])
+    glaze = np.clip(base_glaze + hue_shift[tile_v, tile_u], 0.02, 0.9)
+    grout_color = np.array([0.42, 0.40, 0.37])
+    speckle = rng.normal(0.0, 0.02, size=(size, size, 1))
+    diffuse = np.where(grout[..., None], grout_color + speckle, glaze + 0.3 * speckle)
+    roughness = np.where(grout, 0.85, 0.16 + 0.05 * rng.uniform(size=(tiles, tiles))[tile_v, tile_u])
+    specular = np.where(grout[..., None], 0.03, 0.05) * np.ones(3)
+    return Material(normal=normal.astype(np.float32),
+                    diffuse=np.clip(diffuse, 0, 1).transpose(2, 0, 1).astype(np.float32),
+                    roughness=roughness[None].astype(np.float32),
+                    specular=specular.transpose(2, 0, 1).astype(np.float32),
+                    provenance={"source": "scripts/make_assets.py glazed_tiles", "seed": seed})
+
+
 def main() -> None:
     envmaps = ROOT / "scenes" / "envmaps"
     textures = ROOT / "scenes" / "textures"
@@ -62,7 +107,9 @@ def main() -> None:
             "mid_roughness.exr": (0.5,), "dielectric_specular.exr": (0.04, 0.04, 0.04)}
     for name, value in flat.items():
         write_image(textures / name, np.broadcast_to(np.asarray(value, np.float32), (2, 2, len(value))).copy())
-    print(f"wrote {envmaps} and {textures}")
+    example = ROOT / "mideepbasis" / "assets" / "example_material"
+    glazed_tiles().save(example, format="png")
+    print(f"wrote {envmaps}, {textures} and {example}")
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from .. import constants
 from ..errors import InputError
@@ -114,8 +115,25 @@ def preview_scene(material, environment: str = "studio", spp: int = constants.DE
     return scene
 
 
-def render(scene: mi.Scene, spp: int | None = None, seed: int = 0) -> np.ndarray:
-    """Path trace ``scene``; returns linear radiance, (H, W, 3) float32."""
-    image = mi.render(scene, spp=spp or 0, seed=seed)
-    dr.eval(image)
-    return np.array(image, dtype=np.float32)[..., :3]
+def render(scene: mi.Scene, spp: int | None = None, seed: int = 0, progress: bool = False,
+           pass_spp: int = 64) -> np.ndarray:
+    """Path trace ``scene``; returns linear radiance, (H, W, 3) float32.
+
+    Args:
+        scene: a loaded scene.
+        spp: samples per pixel; default the scene sampler's.
+        seed: seed of the first pass.
+        progress: show a progress bar over the passes.
+        pass_spp: largest number of samples per pixel rendered in one pass; more samples are
+            split into equal passes with successive seeds and averaged.
+    """
+    total = spp or scene.sensors()[0].sampler().sample_count()
+    passes = max(1, math.ceil(total / pass_spp))
+    per_pass = math.ceil(total / passes)
+    accumulated = None
+    for index in tqdm(range(passes), desc="path tracing", unit="pass", disable=not progress or passes == 1):
+        image = mi.render(scene, spp=per_pass, seed=seed + index)
+        dr.eval(image)
+        image = np.array(image, dtype=np.float32)[..., :3]
+        accumulated = image if accumulated is None else accumulated + image
+    return accumulated / passes

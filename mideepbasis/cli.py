@@ -1,0 +1,109 @@
+"""The ``mideepbasis`` command. Thin: parse arguments, call the library, print one line per error.
+
+    mideepbasis render MATERIAL_DIR -o OUT.exr [--light flash|env] [--fov 45] [--offset TX,TY]
+                       [--spp N] [--convention physical|deepbasis] [--env studio|sunsky|FILE]
+    mideepbasis demo [-o OUT_DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+from . import constants
+from .errors import InputError, MideepbasisError
+
+
+def _offset(text: str) -> tuple[float, float]:
+    try:
+        tx, ty = (float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"offset must be TX,TY in patch half-widths, got {text!r}") from None
+    return tx, ty
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _add_render(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "render", help="render a material folder under the flash or an environment",
+        description="Render a material folder (DESIGN section 3). Writes the linear EXR and an sRGB PNG beside it. "
+                    "With --light flash and no --spp, renders the per-pixel flash formula exactly; "
+                    "with --spp, path traces the flash scene.")
+    parser.add_argument("material", type=Path, metavar="MATERIAL_DIR", help="material folder (normal, diffuse, roughness, specular)")
+    parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.exr", help="output EXR; the PNG goes beside it")
+    parser.add_argument("--light", choices=["flash", "env"], default="flash", help="flash capture or environment preview")
+    parser.add_argument("--fov", type=float, default=constants.DEFAULT_FOV_DEG, help="flash camera field of view [deg]")
+    parser.add_argument("--offset", type=_offset, default=(0.0, 0.0), metavar="TX,TY",
+                        help="hand-held offset of camera and flash [patch half-widths]")
+    parser.add_argument("--spp", type=_positive_int, default=None, help="samples per pixel (path tracing)")
+    parser.add_argument("--convention", choices=constants.CONVENTIONS, default=None,
+                        help="shading convention (default: the material's own)")
+    parser.add_argument("--env", default="studio", metavar="studio|sunsky|FILE", help="environment of --light env")
+    parser.add_argument("--resolution", type=_positive_int, default=None,
+                        help="image size [pixels] (default: the material's for flash, 256 for env)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the path tracer")
+    parser.set_defaults(run=_run_render)
+
+
+def _run_render(args) -> None:
+    from .material import Material
+    from .render.api import render_material, write_render
+
+    if args.output.suffix.lower() != ".exr":
+        raise InputError(f"output {args.output} must end in .exr (the sRGB PNG is written beside it)")
+    material = Material.load(args.material)
+    image = render_material(material, light=args.light, fov=args.fov, offset=args.offset, spp=args.spp,
+                            convention=args.convention, environment=args.env, resolution=args.resolution,
+                            seed=args.seed)
+    exr, png = write_render(image, args.output)
+    print(f"wrote {exr} and {png}")
+
+
+def _add_demo(subparsers) -> None:
+    parser = subparsers.add_parser("demo", help="render the bundled example material under the flash and the studio")
+    parser.add_argument("-o", "--output", type=Path, default=Path("demo"), metavar="OUT_DIR")
+    parser.set_defaults(run=_run_demo)
+
+
+def _run_demo(args) -> None:
+    from .material import Material
+    from .render.api import example_material_dir, render_material, write_render
+
+    material = Material.load(example_material_dir())
+    for light, name in (("flash", "flash"), ("env", "studio")):
+        exr, png = write_render(render_material(material, light=light), args.output / f"{name}.exr")
+        print(f"wrote {exr} and {png}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mideepbasis", description="SVBRDF capture from one hand-held flash photo.")
+    subparsers = parser.add_subparsers(dest="command", required=True)
+    _add_render(subparsers)
+    _add_demo(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    warnings.formatwarning = lambda message, category, *rest: f"mideepbasis: warning: {message}\n"
+    try:
+        args.run(args)
+    except (MideepbasisError, FileNotFoundError) as error:
+        print(f"mideepbasis: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mideepbasis: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,400 @@
+"""Image I/O: PNG (8/16-bit), JPEG and OpenEXR, the sRGB transfer function, EXIF, size limits.
+
+Everything inside the project is linear (DESIGN section 3); the sRGB curve is applied here, at the
+file boundary, and only when the caller says the data is colour. Arrays on disk and in this module
+are (H, W, C) float32; C is 1 (grey) or 3 (RGB).
+
+Every failure is an :class:`ImageIOError` whose message is one line naming the file and the
+problem. Every write is atomic: a temporary file in the target folder, moved into place with
+``os.replace``, so a reader never sees half a file and a failed write leaves an old file intact.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import struct
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import OpenEXR
+import torch
+from PIL import Image, JpegImagePlugin, PngImagePlugin
+
+from . import constants
+from .errors import InputError
+
+with warnings.catch_warnings():
+    # colour-science announces at import that optional SciPy / Matplotlib features are missing;
+    # we use none of them.
+    warnings.simplefilter("ignore")
+    import colour
+
+__all__ = ["ImageIOError", "read_image", "write_image", "write_bytes", "srgb_to_linear", "linear_to_srgb"]
+
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_JPEG_MAGIC = b"\xff\xd8\xff"
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+_EXIF_ORIENTATION = 0x0112
+_GREY_MODES = {"1", "L", "LA", "La", "I", "I;16", "I;16B", "I;16L", "F"}
+
+
+class ImageIOError(InputError):
+    """An image file cannot be read or written; the message is one line naming the file."""
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+# --- sRGB ------------------------------------------------------------------------------------------
+
+
+def srgb_to_linear(x: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    """Decode sRGB-encoded values to linear (the sRGB EOTF).
+
+    Both paths use the IEC 61966-2-1 piecewise curve: ``x / 12.92`` for ``x <= 0.04045``, else
+    ``((x + 0.055) / 1.055) ** 2.4``. NumPy input goes through colour-science; a torch tensor is
+    decoded in plain torch so gradients flow (and it stays on its device).
+
+    Args:
+        x: encoded values [0, 1], any shape.
+
+    Returns:
+        Linear values [0, 1], same shape; float32 for NumPy input, ``x``'s dtype for tensors.
+    """
+    if isinstance(x, torch.Tensor):
+        # Clamp the base of the power so the unused branch of `where` has a finite gradient.
+        power = ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4
+        return torch.where(x <= 0.04045, x / 12.92, power)
+    return np.asarray(colour.cctf_decoding(np.asarray(x), function="sRGB"), dtype=np.float32)
+
+
+def linear_to_srgb(x: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    """Encode linear values with the sRGB OETF (inverse EOTF).
+
+    Both paths use the IEC 61966-2-1 piecewise curve: ``12.92 x`` for ``x <= 0.0031308``, else
+    ``1.055 x ** (1 / 2.4) - 0.055``. NumPy input goes through colour-science; a torch tensor is
+    encoded in plain torch so gradients flow.
+
+    Args:
+        x: linear values [0, 1], any shape.
+
+    Returns:
+        Encoded values [0, 1], same shape; float32 for NumPy input, ``x``'s dtype for tensors.
+    """
+    if isinstance(x, torch.Tensor):
+        power = 1.055 * x.clamp(min=0.0031308) ** (1.0 / 2.4) - 0.055
+        return torch.where(x <= 0.0031308, x * 12.92, power)
+    return np.asarray(colour.cctf_encoding(np.asarray(x), function="sRGB"), dtype=np.float32)
+
+
+# --- reading ---------------------------------------------------------------------------------------
+
+
+def read_image(
+    path: str | os.PathLike, *, decode_srgb: bool = False, max_pixels: int = constants.MAX_IMAGE_PIXELS
+) -> np.ndarray:
+    """Read a PNG (8/16-bit), JPEG or OpenEXR image.
+
+    The format is recognised from the file's content, not its name. Integer data are scaled to
+    [0, 1]; EXIF orientation is applied; alpha is dropped with a warning; palette, CMYK and similar
+    modes become RGB; grey images keep one channel. The pixel count is checked from the header,
+    before any pixel is decoded.
+
+    Args:
+        path: the image file.
+        decode_srgb: decode PNG/JPEG values with the sRGB EOTF (for colour data: photos, diffuse,
+            specular). EXR is linear by definition and returned as stored.
+        max_pixels: largest accepted width * height [pixels].
+
+    Returns:
+        (H, W, C) float32 image, C = 1 or 3.
+
+    Raises:
+        ImageIOError: missing file, directory, not an image, truncated or corrupt data, too many
+            pixels, or (EXR) NaN / infinite values.
+    """
+    path = Path(path)
+    magic = _read_magic(path)
+    if magic.startswith(_EXR_MAGIC):
+        return _read_exr(path, max_pixels)
+    if magic.startswith(_PNG_MAGIC):
+        image = _read_png(path, max_pixels)
+    elif magic.startswith(_JPEG_MAGIC):
+        image = _read_pil(path, JpegImagePlugin.JpegImageFile, max_pixels)
+    elif not magic:
+        raise ImageIOError(f"cannot read '{path}': file is empty")
+    else:
+        raise ImageIOError(f"cannot read '{path}': not an image file (expected PNG, JPEG or OpenEXR)")
+    return srgb_to_linear(image) if decode_srgb else image
+
+
+def _read_magic(path: Path) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read(8)
+    except FileNotFoundError:
+        raise ImageIOError(f"cannot read '{path}': no such file") from None
+    except IsADirectoryError:
+        raise ImageIOError(f"cannot read '{path}': is a directory, not an image file") from None
+    except OSError as exc:
+        raise ImageIOError(f"cannot read '{path}': {_one_line(exc)}") from exc
+
+
+def _check_pixels(path: Path, width: int, height: int, max_pixels: int) -> None:
+    if width * height > max_pixels:
+        raise ImageIOError(
+            f"cannot read '{path}': {width}x{height} pixels exceeds the limit of {max_pixels} pixels"
+        )
+
+
+def _decode_error(path: Path, exc: BaseException) -> ImageIOError:
+    message = _one_line(exc)
+    if "truncat" in message.lower() or isinstance(exc, (EOFError, struct.error)):
+        return ImageIOError(f"cannot read '{path}': file is truncated")
+    return ImageIOError(f"cannot read '{path}': corrupt image data ({message})")
+
+
+def _read_png(path: Path, max_pixels: int) -> np.ndarray:
+    with open(path, "rb") as f:
+        header = f.read(26)
+    # IHDR is always the first chunk: length (8:12), b"IHDR" (12:16), width, height, depth, type.
+    if len(header) < 26 or header[12:16] != b"IHDR":
+        raise ImageIOError(f"cannot read '{path}': file is truncated or not a valid PNG")
+    width, height, depth, colour_type = struct.unpack(">IIBB", header[16:26])
+    if depth != 16:
+        return _read_pil(path, PngImagePlugin.PngImageFile, max_pixels)
+
+    # Pillow reads 16-bit RGB(A) PNGs as 8-bit, so OpenCV decodes them. Pillow still checks the
+    # chunk structure and CRCs first (OpenCV returns None or a partial image on broken data) and
+    # supplies the EXIF orientation (from an eXIf chunk before the image data, as the PNG
+    # specification places it), which OpenCV ignores under IMREAD_UNCHANGED.
+    _check_pixels(path, width, height, max_pixels)
+    try:
+        with PngImagePlugin.PngImageFile(path) as img:
+            orientation = _exif_orientation(lambda: _exif_from_bytes(img.info.get("exif")))
+            img.verify()
+    except (OSError, SyntaxError, EOFError, struct.error, ValueError) as exc:
+        raise _decode_error(path, exc) from exc
+    data = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if data is None or data.dtype != np.uint16:
+        raise ImageIOError(f"cannot read '{path}': corrupt 16-bit PNG data")
+    data = data[..., None] if data.ndim == 2 else data
+    has_alpha = colour_type in (4, 6) or data.shape[2] == 4
+    # OpenCV returns BGR(A) and expands grey + alpha to BGRA; PNG colour types 0 and 4 are grey.
+    data = data[..., :1] if colour_type in (0, 4) else data[..., 2::-1]
+    if has_alpha:
+        _warn_alpha(path)
+    image = data.astype(np.float32) / 65535.0
+    return _orient(image, orientation)
+
+
+def _read_pil(path: Path, opener: Callable[[Path], Image.Image], max_pixels: int) -> np.ndarray:
+    # The format plugins open lazily (header only) and, unlike Image.open, do not apply Pillow's
+    # own decompression-bomb limit, so `max_pixels` is the one limit that applies.
+    try:
+        with opener(path) as img:
+            _check_pixels(path, *img.size, max_pixels)
+            img.load()
+            orientation = _exif_orientation(img.getexif)
+            has_alpha = "A" in img.mode or "transparency" in img.info
+            if img.mode in ("P", "PA"):
+                img = img.convert("RGBA")
+            img = img.convert("L" if img.mode in _GREY_MODES else "RGB")
+            data = np.asarray(img)
+    except ImageIOError:
+        raise
+    except (OSError, SyntaxError, EOFError, struct.error, ValueError) as exc:
+        raise _decode_error(path, exc) from exc
+    if has_alpha:
+        _warn_alpha(path)
+    data = data[..., None] if data.ndim == 2 else data
+    return _orient(data.astype(np.float32) / 255.0, orientation)
+
+
+def _exif_from_bytes(raw: bytes | None) -> Image.Exif:
+    exif = Image.Exif()
+    if raw:
+        exif.load(raw)
+    return exif
+
+
+def _exif_orientation(get_exif: Callable[[], Image.Exif]) -> int:
+    # A malformed EXIF block must not stop the pixels from being read: fall back to "as stored".
+    try:
+        orientation = int(get_exif().get(_EXIF_ORIENTATION, 1))
+    except Exception:  # noqa: BLE001 - any EXIF parsing failure means "no orientation"
+        return 1
+    return orientation if 1 <= orientation <= 8 else 1
+
+
+def _orient(image: np.ndarray, orientation: int) -> np.ndarray:
+    """Apply an EXIF orientation (1..8) to an (H, W, C) array, as ``ImageOps.exif_transpose`` does."""
+    transpose = lambda a: a.transpose(1, 0, 2)  # noqa: E731
+    ops = {
+        1: lambda a: a,
+        2: lambda a: a[:, ::-1],  # mirror left-right
+        3: lambda a: a[::-1, ::-1],  # rotate 180
+        4: lambda a: a[::-1],  # mirror top-bottom
+        5: transpose,  # mirror along the main diagonal
+        6: lambda a: np.rot90(a, k=-1),  # rotate 90 clockwise
+        7: lambda a: transpose(a[::-1, ::-1]),  # mirror along the anti-diagonal
+        8: lambda a: np.rot90(a, k=1),  # rotate 90 counter-clockwise
+    }
+    return np.ascontiguousarray(ops[orientation](image))
+
+
+def _warn_alpha(path: Path) -> None:
+    warnings.warn(f"'{path}': alpha channel dropped", stacklevel=4)  # points at the caller of read_image
+
+
+def _read_exr(path: Path, max_pixels: int) -> np.ndarray:
+    try:
+        header = OpenEXR.File(str(path), header_only=True).header()
+        lo, hi = header["dataWindow"]
+        _check_pixels(path, int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1), max_pixels)
+        channels = {
+            name: channel.pixels
+            for name, channel in OpenEXR.File(str(path), separate_channels=True).channels().items()
+        }
+    except ImageIOError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - OpenEXR raises bare Exception / RuntimeError
+        # OpenEXR's messages cannot tell a cut-off file from a damaged one.
+        raise ImageIOError(f"cannot read '{path}': truncated or corrupt OpenEXR file ({_one_line(exc)})") from exc
+    if {"R", "G", "B"} <= channels.keys():
+        image = np.stack([channels[c] for c in "RGB"], axis=-1)
+    elif "Y" in channels:
+        image = channels["Y"][..., None]
+    else:
+        found = ", ".join(sorted(channels)) or "none"
+        raise ImageIOError(f"cannot read '{path}': expected channels R, G, B or Y, found {found}")
+    if "A" in channels:
+        _warn_alpha(path)
+    image = image.astype(np.float32)
+    if not np.isfinite(image).all():
+        raise ImageIOError(f"'{path}' contains NaN or infinite values")
+    return image
+
+
+# --- writing ---------------------------------------------------------------------------------------
+
+_SUFFIXES = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
+_BIT_DEPTHS = {"png": (8, 16), "jpeg": (8,), "exr": (16, 32)}
+
+
+def write_image(
+    path: str | os.PathLike,
+    image: np.ndarray | torch.Tensor,
+    *,
+    encode_srgb: bool = False,
+    bit_depth: int | None = None,
+) -> Path:
+    """Write an image atomically; the format comes from the suffix (.png, .jpg/.jpeg, .exr).
+
+    PNG and JPEG values are clipped to [0, 1] (and sRGB-encoded first if ``encode_srgb``); EXR is
+    written linear and unclipped. A single-channel image becomes a grey PNG/JPEG or an EXR with one
+    ``Y`` channel. Parent folders are created.
+
+    Args:
+        path: target file.
+        image: (H, W), (H, W, 1) or (H, W, 3) floating-point NumPy array or torch tensor.
+        encode_srgb: apply the sRGB OETF before quantising (colour data only; ignored for EXR).
+        bit_depth: PNG 8 or 16; JPEG 8; EXR 32 (float) or 16 (half). None: 8 for PNG/JPEG, 32 for
+            EXR.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ImageIOError: unknown suffix, bad bit depth, bad shape or dtype, NaN / infinite values, or
+            the write failed. Nothing is left behind and an existing file is untouched.
+    """
+    path = Path(path)
+    kind = _SUFFIXES.get(path.suffix.lower())
+    if kind is None:
+        raise ImageIOError(
+            f"cannot write '{path}': unsupported suffix '{path.suffix}' (expected .png, .jpg, .jpeg or .exr)"
+        )
+    bit_depth = bit_depth if bit_depth is not None else (32 if kind == "exr" else 8)
+    if bit_depth not in _BIT_DEPTHS[kind]:
+        allowed = " or ".join(map(str, _BIT_DEPTHS[kind]))
+        raise ImageIOError(f"cannot write '{path}': bit depth {bit_depth} is not supported for {kind} ({allowed})")
+    data = _as_hwc(path, image)
+
+    if kind == "exr":
+        with np.errstate(over="ignore"):  # values beyond the half range (65504) become inf ...
+            data = data.astype(np.float16 if bit_depth == 16 else np.float32)
+        if not np.isfinite(data).all():  # ... and are refused here
+            raise ImageIOError(f"cannot write '{path}': values exceed the range of half floats")
+        names = "RGB" if data.shape[2] == 3 else "Y"
+        channels = {name: np.ascontiguousarray(data[..., i]) for i, name in enumerate(names)}
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        return _atomic(path, lambda tmp: OpenEXR.File(header, channels).write(str(tmp)))
+
+    data = np.clip(data, 0.0, 1.0)
+    if encode_srgb:
+        data = np.clip(linear_to_srgb(data), 0.0, 1.0)
+    if bit_depth == 16:
+        # Pillow cannot write 16-bit RGB PNGs; OpenCV can (it expects BGR).
+        data = np.round(data * 65535.0).astype(np.uint16)
+        data = data[..., 0] if data.shape[2] == 1 else data[..., ::-1]
+
+        def encode16(tmp: Path) -> None:
+            ok, buffer = cv2.imencode(".png", np.ascontiguousarray(data))
+            if not ok:
+                raise OSError("OpenCV could not encode the PNG")
+            tmp.write_bytes(buffer.tobytes())
+
+        return _atomic(path, encode16)
+    data = np.round(data * 255.0).astype(np.uint8)
+    img = Image.fromarray(data[..., 0] if data.shape[2] == 1 else data)
+    options = {"quality": 95} if kind == "jpeg" else {}
+    return _atomic(path, lambda tmp: img.save(tmp, format=kind.upper(), **options))
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write bytes (e.g. a JSON side-car) atomically, creating parent folders.
+
+    Raises:
+        ImageIOError: the write failed; an existing file is untouched.
+    """
+    return _atomic(Path(path), lambda tmp: tmp.write_bytes(data))
+
+
+def _as_hwc(path: Path, image: np.ndarray | torch.Tensor) -> np.ndarray:
+    if isinstance(image, torch.Tensor):
+        image = image.detach().cpu().numpy()
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[..., None]
+    if image.ndim != 3 or image.shape[2] not in (1, 3) or 0 in image.shape:
+        raise ImageIOError(
+            f"cannot write '{path}': expected an image of shape (H, W), (H, W, 1) or (H, W, 3), "
+            f"got {tuple(image.shape)}"
+        )
+    if not np.issubdtype(image.dtype, np.floating):
+        raise ImageIOError(f"cannot write '{path}': expected floating-point values, got {image.dtype}")
+    if not np.isfinite(image).all():
+        raise ImageIOError(f"cannot write '{path}': image contains NaN or infinite values")
+    return image.astype(np.float32)
+
+
+def _atomic(path: Path, write: Callable[[Path], object]) -> Path:
+    """Run ``write(tmp)`` on a temporary file beside ``path`` and move it into place."""
+    # The temporary name keeps the real suffix so that encoders pick the right format.
+    tmp = path.with_name(f".{path.stem}.tmp-{secrets.token_hex(6)}{path.suffix}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write(tmp)
+        with open(tmp, "rb+") as f:  # on disk before the rename, so a crash cannot leave an empty file
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except Exception as exc:  # noqa: BLE001 - every failure becomes one line naming the file
+        tmp.unlink(missing_ok=True)
+        raise ImageIOError(f"cannot write '{path}': {_one_line(exc)}") from exc
+    return path

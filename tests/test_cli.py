@@ -1,0 +1,122 @@
+"""The `mideepbasis` command: render outputs and one-line errors for bad input, with nothing written."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from mideepbasis import cli, constants
+from mideepbasis.imageio import read_image, write_image
+from mideepbasis.material import Material
+from mideepbasis.render import reference
+
+
+@pytest.fixture
+def material_dir(tmp_path):
+    generator = torch.Generator().manual_seed(0)
+    normal = torch.nn.functional.normalize(torch.randn(3, 24, 24, generator=generator) * 0.2
+                                           + torch.tensor([0, 0, 1.0]).view(3, 1, 1), dim=0)
+    material = Material(normal=normal, diffuse=torch.rand(3, 24, 24, generator=generator) * 0.8,
+                        roughness=0.2 + 0.6 * torch.rand(1, 24, 24, generator=generator),
+                        specular=torch.full((3, 24, 24), 0.04))
+    folder = tmp_path / "material"
+    material.save(folder, format="exr")
+    return folder
+
+
+def run(*args) -> int:
+    return cli.main([str(a) for a in args])
+
+
+def test_flash_render_is_the_per_pixel_formula(material_dir, tmp_path):
+    out = tmp_path / "out" / "flash.exr"
+    assert run("render", material_dir, "-o", out, "--offset", "0.2,-0.1") == 0
+    image = read_image(out)
+    material = Material.load(material_dir)
+    height = constants.camera_height(45.0)
+    expected = reference.render_flash(material.to_tensor()[None], torch.tensor([[[0.2, -0.1, height]]]),
+                                      math.pi * height**2)[0, 0].permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(image, expected, rtol=1e-4, atol=1e-6)
+    png = read_image(out.with_suffix(".png"), decode_srgb=True)
+    # Half an 8-bit step, through the steepest part of the sRGB decoding curve (slope < 2.3).
+    np.testing.assert_allclose(png, np.clip(expected, 0, 1), atol=0.5 / 255 * 2.3)
+
+
+@pytest.mark.parametrize("extra", [["--light", "env", "--spp", "4", "--resolution", "32"],
+                                   ["--light", "env", "--env", "sunsky", "--spp", "4", "--resolution", "32"],
+                                   ["--light", "flash", "--spp", "8"]])
+def test_path_traced_renders_write_both_files(material_dir, tmp_path, extra):
+    out = tmp_path / "render.exr"
+    assert run("render", material_dir, "-o", out, *extra) == 0
+    image = read_image(out)
+    assert np.isfinite(image).all() and image.mean() > 0.01
+    assert read_image(out.with_suffix(".png")).shape == image.shape
+
+
+def corrupt_cases(tmp_path, material_dir):
+    """Each case: (name, material folder) whose render must fail with a one-line message naming the problem."""
+    cases = {}
+
+    def copy(name):
+        folder = tmp_path / name
+        folder.mkdir()
+        for file in material_dir.iterdir():
+            (folder / file.name).write_bytes(file.read_bytes())
+        return folder
+
+    folder = copy("not_an_image")
+    (folder / "diffuse.exr").write_text("hello")
+    cases["not_an_image"] = (folder, "diffuse")
+    folder = copy("missing_map")
+    (folder / "roughness.exr").unlink()
+    cases["missing_map"] = (folder, "roughness")
+    folder = copy("wrong_size")
+    write_image(folder / "specular.exr", np.full((12, 24, 3), 0.04, np.float32))
+    cases["wrong_size"] = (folder, "size")
+    folder = copy("nan")
+    diffuse = np.full((24, 24, 3), 0.5, np.float32)
+    diffuse[3, 4, 1] = np.nan
+    (folder / "diffuse.exr").unlink()
+    import OpenEXR
+    OpenEXR.File({"type": OpenEXR.scanlineimage}, {"RGB": diffuse}).write(str(folder / "diffuse.exr"))
+    cases["nan"] = (folder, "NaN")
+    folder = copy("out_of_range")
+    write_image(folder / "roughness.exr", np.full((24, 24, 1), 1.7, np.float32))
+    cases["out_of_range"] = (folder, "range")
+    folder = tmp_path / "truncated_png"
+    Material.load(material_dir).save(folder, format="png")
+    data = (folder / "normal.png").read_bytes()
+    (folder / "normal.png").write_bytes(data[: len(data) // 2])
+    cases["truncated_png"] = (folder, "truncated")
+    return cases
+
+
+def test_bad_input_gives_one_clear_line_and_writes_nothing(material_dir, tmp_path, capsys):
+    for name, (folder, expected) in corrupt_cases(tmp_path, material_dir).items():
+        out = tmp_path / "renders" / f"{name}.exr"
+        assert run("render", folder, "-o", out) == 2, name
+        message = capsys.readouterr().err.strip()
+        assert message.startswith("mideepbasis: error:") and "\n" not in message, (name, message)
+        assert expected.lower() in message.lower(), (name, message)
+        assert not out.exists() and not out.with_suffix(".png").exists(), name
+    assert not (tmp_path / "renders").exists() or not any((tmp_path / "renders").iterdir())
+
+
+def test_output_must_be_exr(material_dir, tmp_path, capsys):
+    assert run("render", material_dir, "-o", tmp_path / "x.png") == 2
+    assert ".exr" in capsys.readouterr().err
+
+
+def test_console_command_runs_the_demo(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "mideepbasis.cli", "demo", "-o", str(tmp_path / "demo")],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    for name in ["flash.exr", "flash.png", "studio.exr", "studio.png"]:
+        assert (tmp_path / "demo" / name).is_file(), name
+    flash = read_image(tmp_path / "demo" / "flash.exr")
+    assert flash.shape == (256, 256, 3) and flash.max() > 1.0  # the glaze's highlight under the flash
