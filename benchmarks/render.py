@@ -72,8 +72,10 @@ def main() -> None:
             with torch.no_grad():
                 render(maps, light, intensity)
 
+        leaf_maps, leaf_light = maps.clone().requires_grad_(), light.clone().requires_grad_()
+
         def forward_backward():
-            leaf_maps, leaf_light = maps.clone().requires_grad_(), light.clone().requires_grad_()
+            leaf_maps.grad = leaf_light.grad = None
             render(leaf_maps, leaf_light, intensity).square().mean().backward()
 
         def sixty_four():
