@@ -74,34 +74,28 @@ class SVBRDF(mi.BSDF):
 
     # --- the mi.BSDF interface -----------------------------------------------------------------
 
-    def eval(self, ctx, si, wo, active=True):
-        has_diffuse, has_specular = self._lobes(ctx)
-        if not (has_diffuse or has_specular):
-            return mi.Color3f(0.0)
-        normal, diffuse, roughness, specular = self.maps(si, active)
-        value = shading.eval_cosine(self.convention, normal, si.wi, wo, diffuse, roughness, specular,
-                                    include_diffuse=has_diffuse, include_specular=has_specular)
-        return dr.select(active, value, 0.0)
-
-    def pdf(self, ctx, si, wo, active=True):
-        has_diffuse, has_specular = self._lobes(ctx)
-        if not (has_diffuse or has_specular):
-            return mi.Float(0.0)
-        normal, diffuse, roughness, specular = self.maps(si, active)
-        pdf = shading.pdf_direction(self.convention, normal, si.wi, wo, diffuse, roughness, specular,
-                                    has_diffuse=has_diffuse, has_specular=has_specular)
-        return dr.select(active, pdf, 0.0)
-
-    def eval_pdf(self, ctx, si, wo, active=True):
+    def _value_and_pdf(self, ctx, si, wo, active, with_value: bool, with_pdf: bool):
+        """(f * cos, pdf) of the lobes the context enables; the maps are looked up once."""
         has_diffuse, has_specular = self._lobes(ctx)
         if not (has_diffuse or has_specular):
             return mi.Color3f(0.0), mi.Float(0.0)
         normal, diffuse, roughness, specular = self.maps(si, active)
-        value = shading.eval_cosine(self.convention, normal, si.wi, wo, diffuse, roughness, specular,
-                                    include_diffuse=has_diffuse, include_specular=has_specular)
-        pdf = shading.pdf_direction(self.convention, normal, si.wi, wo, diffuse, roughness, specular,
-                                    has_diffuse=has_diffuse, has_specular=has_specular)
+        lobes = dict(include_diffuse=has_diffuse, include_specular=has_specular)
+        value = (shading.eval_cosine(self.convention, normal, si.wi, wo, diffuse, roughness, specular, **lobes)
+                 if with_value else mi.Color3f(0.0))
+        pdf = (shading.pdf_direction(self.convention, normal, si.wi, wo, diffuse, roughness, specular,
+                                     has_diffuse=has_diffuse, has_specular=has_specular)
+               if with_pdf else mi.Float(0.0))
         return dr.select(active, value, 0.0), dr.select(active, pdf, 0.0)
+
+    def eval(self, ctx, si, wo, active=True):
+        return self._value_and_pdf(ctx, si, wo, active, with_value=True, with_pdf=False)[0]
+
+    def pdf(self, ctx, si, wo, active=True):
+        return self._value_and_pdf(ctx, si, wo, active, with_value=False, with_pdf=True)[1]
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        return self._value_and_pdf(ctx, si, wo, active, with_value=True, with_pdf=True)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
         has_diffuse, has_specular = self._lobes(ctx)
