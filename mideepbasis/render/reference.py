@@ -20,7 +20,8 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def _normalize(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-3, keepdim=True)
+    # Not torch.linalg.vector_norm: over a non-last dimension it is ~90x slower on the CPU.
+    return v * torch.rsqrt((v * v).sum(dim=-3, keepdim=True))
 
 
 def eval_cosine(convention: str, normal: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor,

@@ -1,0 +1,120 @@
+"""The procedural SVBRDF generator: the project's only source of training materials.
+
+    from mideepbasis.data.procedural import generate, FAMILIES
+    material = generate(seed=7, size=256)                    # a random family
+    material = generate(seed=7, family="wood", tileable=True)
+
+A material is made in four steps, all drawn from one generator seeded by ``seed`` (the same
+seed gives the same material): a family builds a ``Surface`` (relief, albedos, roughness); with
+some chance a second family is mixed in through a mask; weathering layers (scratches, dirt,
+wear, stains, fingerprints) are applied with their chances; the normals are computed from the
+relief. Values stay physically plausible: dielectrics have a grey F0 of about 0.02 to 0.08 and a
+coloured diffuse albedo, metals a coloured F0 and a dark diffuse albedo.
+
+(DESIGN section 4 names one module, ``data/procedural.py``; the generator grew into this
+package, importable under the same name: ``core`` has the primitives, ``families/`` one module
+per family, ``layers`` the weathering and mixing.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ... import constants
+from ...material import Material
+from . import families  # noqa: F401  (registers every family)
+from .core import Canvas, Surface, height_to_normal
+from .layers import mixing_mask, weather
+from .registry import FAMILIES
+
+
+@dataclass(frozen=True)
+class GeneratorConfig:
+    """How materials are drawn."""
+
+    size: int = constants.DEFAULT_RESOLUTION
+    """Width and height of the maps [pixels]."""
+
+    tileable: bool = False
+    """Make every map wrap around its edges without a seam."""
+
+    families: tuple[str, ...] | None = None
+    """Families to draw from (all registered families when None)."""
+
+    mix_probability: float = 0.2
+    """Chance that a second family is mixed in through a mask."""
+
+    weathering: bool = True
+    """Apply the weathering layers (each with its own chance)."""
+
+    bump_scale: tuple[float, float] = (0.5, 1.6)
+    """Range of a random factor on the relief, log-uniform: the same structure deeper or flatter."""
+
+
+def _family_names(config: GeneratorConfig) -> list[str]:
+    names = list(config.families) if config.families else list(FAMILIES)
+    unknown = [name for name in names if name not in FAMILIES]
+    if unknown:
+        raise ValueError(f"unknown procedural families {unknown}; known: {sorted(FAMILIES)}")
+    return names
+
+
+def generate_surface(seed: int, config: GeneratorConfig = GeneratorConfig(),
+                     family: str | None = None) -> tuple[Surface, np.ndarray, dict]:
+    """The surface, its normals ((H, W, 3)) and its provenance, before it becomes a Material."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x6D69646565]))
+    canvas = Canvas(config.size, rng, config.tileable)
+    names = _family_names(config)
+    name = family or names[int(rng.integers(len(names)))]
+    if name not in FAMILIES:
+        raise ValueError(f"unknown procedural family {name!r}; known: {sorted(FAMILIES)}")
+    surface = FAMILIES[name](canvas)
+    provenance = {"generator": "mideepbasis.procedural", "seed": int(seed), "family": name,
+                  "variant": surface.variant, "size": config.size, "tileable": config.tileable}
+    if canvas.chance(config.mix_probability):
+        other_name = names[int(rng.integers(len(names)))]
+        other = FAMILIES[other_name](canvas)
+        mask, kind = mixing_mask(canvas)
+        surface = surface.blend(other, mask)
+        provenance["mixed_with"] = {"family": other_name, "variant": other.variant, "mask": kind}
+    if config.weathering:
+        surface, applied = weather(canvas, surface)
+        provenance["layers"] = applied
+    low, high = config.bump_scale
+    height = surface.height * canvas.loguniform(low, high)
+    surface = Surface(height, surface.diffuse, surface.roughness, surface.specular, surface.variant).clipped()
+    return surface, height_to_normal(surface.height, config.tileable), provenance
+
+
+def generate(seed: int, size: int | None = None, family: str | None = None, tileable: bool | None = None,
+             config: GeneratorConfig = GeneratorConfig()) -> Material:
+    """A procedural material.
+
+    Args:
+        seed: the material's seed; the same seed (and configuration) gives the same material.
+        size: width and height [pixels] (overrides ``config.size``).
+        family: force a family (see ``FAMILIES``); default drawn from the seed.
+        tileable: make the maps wrap without a seam (overrides ``config.tileable``).
+        config: the generator configuration.
+
+    Returns:
+        a ``Material`` in DESIGN conventions (``physical``), with the recipe in its provenance.
+    """
+    overrides = {key: value for key, value in (("size", size), ("tileable", tileable)) if value is not None}
+    if overrides:
+        config = GeneratorConfig(**{**config.__dict__, **overrides})
+    surface, normal, provenance = generate_surface(seed, config, family)
+
+    def channels_first(image):
+        return torch.from_numpy(np.ascontiguousarray(np.moveaxis(image, -1, 0)))
+
+    return Material(normal=channels_first(normal), diffuse=channels_first(surface.diffuse),
+                    roughness=torch.from_numpy(np.ascontiguousarray(surface.roughness[None])),
+                    specular=channels_first(surface.specular), provenance=provenance,
+                    source=f"procedural material {seed}")
+
+
+__all__ = ["FAMILIES", "GeneratorConfig", "generate", "generate_surface"]
