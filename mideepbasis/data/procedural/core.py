@@ -141,8 +141,8 @@ class Canvas:
               stretch: float = 1.0, angle: float = 0.0) -> np.ndarray:
         """Gaussian noise with a power-law spectrum, zero mean and unit variance, periodic.
 
-        The amplitude falls as |k|^-beta/2... in power: P(k) ~ |k|^-beta between ``low`` and
-        ``high`` cycles per sample (beta = 2: natural fBm-like relief; beta near 0: white).
+        The power spectrum is P(k) ~ |k|^-beta between ``low`` and ``high`` cycles per sample, zero
+        elsewhere (beta = 2 to 3: natural, fBm-like relief; beta = 0: white noise in the band).
         ``stretch`` > 1 elongates features along ``angle`` [rad] (grain, brushing, fibres).
         Coefficients up to ``FIXED_BAND`` cycles come first from the generator, so a larger
         canvas draws the same coarse structure and only adds finer detail.
