@@ -3,6 +3,7 @@
     mideepbasis render MATERIAL_DIR -o OUT.exr [--light flash|env] [--fov 45] [--offset TX,TY]
                        [--spp N] [--convention physical|deepbasis] [--env studio|sunsky|FILE]
     mideepbasis demo [-o OUT_DIR]
+    mideepbasis data preview [--n 64] [--seed S] [--family NAME] [--tileable] -o SHEET.png
 """
 
 from __future__ import annotations
@@ -83,11 +84,36 @@ def _run_demo(args) -> None:
         print(f"wrote {exr} and {png}")
 
 
+def _add_data(subparsers) -> None:
+    parser = subparsers.add_parser("data", help="training data: look at the procedural generator")
+    commands = parser.add_subparsers(dest="data_command", required=True)
+    preview = commands.add_parser("preview", help="contact sheet of procedural materials (flash render and four maps each)")
+    preview.add_argument("--n", type=_positive_int, default=64, help="number of materials")
+    preview.add_argument("--seed", type=int, default=0, help="seed of the first material (the others follow)")
+    preview.add_argument("--size", type=_positive_int, default=256, help="material resolution [pixels]")
+    preview.add_argument("--family", default=None, help="only this family (default: all)")
+    preview.add_argument("--tileable", action="store_true", help="make tileable materials")
+    preview.add_argument("-o", "--output", type=Path, required=True, metavar="SHEET.png")
+    preview.set_defaults(run=_run_data_preview)
+
+
+def _run_data_preview(args) -> None:
+    from .data.preview import procedural_sheet
+    from .data.procedural import FAMILIES
+
+    if args.family is not None and args.family not in FAMILIES:
+        raise InputError(f"unknown family {args.family!r}; known: {', '.join(sorted(FAMILIES))}")
+    path = procedural_sheet(args.n, args.seed, args.output, size=args.size, tileable=args.tileable,
+                            family=args.family)
+    print(f"wrote {path}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mideepbasis", description="SVBRDF capture from one hand-held flash photo.")
     subparsers = parser.add_subparsers(dest="command", required=True)
     _add_render(subparsers)
     _add_demo(subparsers)
+    _add_data(subparsers)
     return parser
 
 

@@ -52,3 +52,17 @@ def flash_intensity(fov: float = constants.DEFAULT_FOV_DEG, convention: str = co
     if convention == "deepbasis":
         return constants.DEEPBASIS_LAMP_INTENSITY
     return math.pi * constants.camera_height(fov) ** 2
+
+
+def lighting_mark_material(height: int, width: int) -> torch.Tensor:
+    """The lighting-mark reference material, (1, 10, H, W): flat, diffuse 0.1, specular 0.5, roughness 0.15.
+
+    Rendered under a hypothesised flash, it tells the network where that flash is (DESIGN section 1).
+    """
+    maps = torch.empty(1, constants.BASIS_CHANNELS, height, width)
+    maps[:, 0:2] = 0.0
+    maps[:, 2] = 1.0
+    maps[:, 3:6] = constants.LIGHTING_MARK_DIFFUSE
+    maps[:, 6] = constants.LIGHTING_MARK_ROUGHNESS
+    maps[:, 7:10] = constants.LIGHTING_MARK_SPECULAR
+    return maps

@@ -151,10 +151,13 @@ class Canvas:
         band = min(size // 2, self.FIXED_BAND)
         coefficients = np.empty((size, size // 2 + 1), dtype=np.complex64)
         rows = np.r_[0:band, size - band:size]
-        coefficients[rows, : band + 1] = self._complex_normal((2 * band, band + 1))
+        coefficients[rows, : band + 1] = _complex_normal(self.rng, (2 * band, band + 1))
+        # Finer detail comes from a generator of its own, so the main one advances by the same
+        # amount at every resolution and later draws stay the same.
+        detail = np.random.default_rng(int(self.rng.integers(2**63)))
         if size // 2 > band:
-            coefficients[band:size - band, :] = self._complex_normal((size - 2 * band, size // 2 + 1))
-            coefficients[rows, band + 1:] = self._complex_normal((2 * band, size // 2 - band))
+            coefficients[band:size - band, :] = _complex_normal(detail, (size - 2 * band, size // 2 + 1))
+            coefficients[rows, band + 1:] = _complex_normal(detail, (2 * band, size // 2 - band))
         cos_a, sin_a = math.cos(angle), math.sin(angle)
         along = self._kx * cos_a + self._ky * sin_a
         across = -self._kx * sin_a + self._ky * cos_a
@@ -164,9 +167,6 @@ class Canvas:
         field = np.fft.irfft2(coefficients * amplitude, s=(size, size))
         std = float(field.std())
         return ((field - field.mean()) / std if std > 0 else field).astype(np.float32)
-
-    def _complex_normal(self, shape) -> np.ndarray:
-        return self.rng.standard_normal((*shape, 2), dtype=np.float32).view(np.complex64)[..., 0]
 
     def blobs(self, cycles: float, sharpness: float = 1.0) -> np.ndarray:
         """Smooth band-limited noise around ``cycles`` per sample, mapped to [0, 1]."""
@@ -266,6 +266,11 @@ class Canvas:
             stamped = cv2.warpAffine(patch, matrix, (size, size), flags=cv2.INTER_LINEAR)
             np.maximum(image, stamped * value, out=image)
         return image
+
+
+def _complex_normal(rng: np.random.Generator, shape) -> np.ndarray:
+    """Complex standard normal values (real and imaginary parts N(0, 1)), complex64."""
+    return rng.standard_normal((*shape, 2), dtype=np.float32).view(np.complex64)[..., 0]
 
 
 def height_to_normal(height: np.ndarray, tileable: bool) -> np.ndarray:

@@ -1,0 +1,259 @@
+"""Training inputs: photos rendered from materials under hand-held flashes, as a phone would take them.
+
+For a batch of materials M this draws, per material, a hand-held offset and a variation xi,
+renders M and M + xi under the same flash through the renderer interface (the ``svbrdf``
+plugin), turns both renders into photos (exposure and white-balance jitter, shot and read
+noise, clipping, 8-bit sRGB quantisation) and builds the 9-channel network inputs that
+training and capture share (``network_input``).
+
+Shapes: maps (B, 10, H, W) [normal 3, diffuse 3, roughness 1, specular 3]; images (B, 3, H, W)
+linear; offsets (B, 2) [patch half-widths]; lights (B, 3) [patch half-widths].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from .. import constants, geometry
+from ..imageio import linear_to_srgb, srgb_to_linear
+
+#: Constant of the log compression of the network input (the DeepBasis value).
+LOG_EPS = 0.01
+
+
+@dataclass(frozen=True)
+class SynthesisConfig:
+    """How training photos are made."""
+
+    fov: float = constants.DEFAULT_FOV_DEG
+    """Field of view of the simulated phone camera [deg]."""
+
+    max_offset_deg: float = constants.MAX_OFFSET_DEG
+    """Largest hand-held offset, as seen from the sample centre [deg] (delta)."""
+
+    offset_sigma_divisor: float = constants.OFFSET_SIGMA_DIVISOR
+    """Per-axis standard deviation of the offset angle is delta divided by this."""
+
+    convention: str = constants.DEFAULT_CONVENTION
+    """Shading convention of the renders."""
+
+    exposure_sigma: float = 0.15
+    """Standard deviation of the log exposure gain (auto-exposure error) [natural log units]."""
+
+    white_balance_sigma: float = 0.03
+    """Standard deviation of the log gain of each colour channel (white-balance error)."""
+
+    shot_noise: tuple[float, float] = (1e-4, 3e-3)
+    """Range (log-uniform) of the shot-noise variance per unit of signal [linear units]."""
+
+    read_noise: tuple[float, float] = (1e-4, 3e-3)
+    """Range (log-uniform) of the standard deviation of the read noise [linear units]."""
+
+    quantize: bool = True
+    """Clip and quantise the photo to 8-bit sRGB, as a JPEG from a phone is."""
+
+    max_rotation: float = math.pi / 6
+    """Largest rotation of the normals by the variation xi [rad]."""
+
+    max_shift: float = 0.3
+    """Largest shift of the other maps by the variation xi [unitless]."""
+
+
+# --- hand-held offsets -----------------------------------------------------------------------------
+
+
+def sample_offsets(batch: int, generator: torch.Generator, fov: float = constants.DEFAULT_FOV_DEG,
+                   max_offset_deg: float = constants.MAX_OFFSET_DEG,
+                   sigma_divisor: float = constants.OFFSET_SIGMA_DIVISOR) -> torch.Tensor:
+    """Hand-held lateral offsets of camera and flash.
+
+    Each axis's offset angle is drawn from N(0, (delta / sigma_divisor)^2) [deg]; the offset
+    is t = H tan(angle) per axis and is clipped radially so that atan(|t| / H) <= delta.
+
+    Returns:
+        (B, 2) offsets (tx, ty) [patch half-widths].
+    """
+    height = constants.camera_height(fov)
+    angles = torch.randn(batch, 2, generator=generator) * (max_offset_deg / sigma_divisor)
+    offsets = height * torch.tan(torch.deg2rad(angles))
+    limit = height * math.tan(math.radians(max_offset_deg))
+    length = torch.linalg.vector_norm(offsets, dim=-1, keepdim=True)
+    return offsets * torch.clamp(limit / length.clamp(min=1e-12), max=1.0)
+
+
+# --- the variation xi of the variation-consistency loss ------------------------------------------
+
+
+@dataclass
+class Variation:
+    """A per-material change of the maps: the xi of the variation-consistency loss.
+
+    The normals turn about +z by ``rotation``; each of the 7 other channels (diffuse 3,
+    roughness 1, specular 3) moves as ``m' = (m + shift) / (1 + shift)``, which keeps [0, 1] in
+    [0, 1]. The same xi applies to every pixel and, through ``apply``, to maps and to bases alike.
+
+    Attributes:
+        rotation: (B,) angle [rad], uniform in [0, max_rotation].
+        shift: (B, 7) shift [unitless], uniform in [0, max_shift], one per channel.
+    """
+
+    rotation: torch.Tensor
+    shift: torch.Tensor
+
+    def apply(self, maps: torch.Tensor) -> torch.Tensor:
+        """Vary (B, 10, ...) maps or bases (any trailing dimensions)."""
+        extra = (1,) * (maps.ndim - 2)
+        cos = torch.cos(self.rotation).view(-1, *extra).to(maps)
+        sin = torch.sin(self.rotation).view(-1, *extra).to(maps)
+        nx, ny, nz = maps[:, 0], maps[:, 1], maps[:, 2]
+        normal = torch.stack([cos * nx - sin * ny, sin * nx + cos * ny, nz], dim=1)
+        shift = self.shift.view(self.shift.shape[0], 7, *extra).to(maps)
+        rest = (maps[:, 3:] + shift) / (1.0 + shift)
+        return torch.cat([normal, rest], dim=1)
+
+
+def sample_variation(batch: int, generator: torch.Generator, max_rotation: float = math.pi / 6,
+                     max_shift: float = 0.3) -> Variation:
+    """Draw xi for a batch: rotations uniform in [0, max_rotation], shifts uniform in [0, max_shift]."""
+    rotation = torch.rand(batch, generator=generator) * max_rotation
+    shift = torch.rand(batch, 7, generator=generator) * max_shift
+    return Variation(rotation=rotation, shift=shift)
+
+
+# --- the camera ---------------------------------------------------------------------------------
+
+
+def simulate_photo(radiance: torch.Tensor, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig(),
+                   gains: torch.Tensor | None = None) -> torch.Tensor:
+    """A phone photo of linear radiance: gain jitter, noise, clipping and 8-bit sRGB quantisation.
+
+    Args:
+        radiance: (B, 3, H, W) linear radiance.
+        generator: the random generator.
+        config: noise and jitter amounts.
+        gains: (B, 3) colour gains to use (exposure times white balance); drawn when None.
+
+    Returns:
+        (B, 3, H, W) linear photo in [0, 1] (values of an 8-bit sRGB image when quantised).
+    """
+    batch = radiance.shape[0]
+    if gains is None:
+        gains = sample_gains(batch, generator, config)
+    signal = radiance * gains.view(batch, 3, 1, 1).to(radiance)
+    shot = _log_uniform(batch, config.shot_noise, generator).view(batch, 1, 1, 1).to(radiance)
+    read = _log_uniform(batch, config.read_noise, generator).view(batch, 1, 1, 1).to(radiance)
+    noise = torch.randn(signal.shape, generator=generator).to(radiance)
+    photo = signal + noise * torch.sqrt(shot * signal.clamp(min=0) + read * read)
+    photo = photo.clamp(0.0, 1.0)
+    if config.quantize:
+        photo = srgb_to_linear(torch.round(linear_to_srgb(photo) * 255.0) / 255.0)
+    return photo
+
+
+def sample_gains(batch: int, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig()) -> torch.Tensor:
+    """(B, 3) exposure times white-balance gains, log-normal around 1."""
+    exposure = torch.randn(batch, 1, generator=generator) * config.exposure_sigma
+    balance = torch.randn(batch, 3, generator=generator) * config.white_balance_sigma
+    return torch.exp(exposure + balance)
+
+
+def _log_uniform(batch: int, bounds: tuple[float, float], generator: torch.Generator) -> torch.Tensor:
+    low, high = math.log(bounds[0]), math.log(bounds[1])
+    return torch.exp(low + (high - low) * torch.rand(batch, generator=generator))
+
+
+# --- network input --------------------------------------------------------------------------------
+
+
+def log_compress(photo: torch.Tensor, eps: float = LOG_EPS) -> torch.Tensor:
+    """(log(x + eps) - log(eps)) / (log(1 + eps) - log(eps)): [0, 1] to [0, 1], shadows stretched."""
+    return (torch.log(photo + eps) - math.log(eps)) / (math.log(1.0 + eps) - math.log(eps))
+
+
+def lighting_mark(lights: torch.Tensor, height: int, width: int, fov: float = constants.DEFAULT_FOV_DEG,
+                  convention: str = constants.DEFAULT_CONVENTION) -> torch.Tensor:
+    """The lighting-mark image: the fixed reference material rendered under each light, clipped to [0, 1].
+
+    Args:
+        lights: (B, 3) flash positions [patch half-widths].
+
+    Returns:
+        (B, 3, H, W).
+    """
+    from ..render import render_flash
+
+    reference = geometry.lighting_mark_material(height, width).to(lights).expand(lights.shape[0], -1, -1, -1)
+    with torch.no_grad():
+        image = render_flash(reference, lights.view(-1, 1, 3), fov=fov, convention=convention)[:, 0]
+    return image.clamp(0.0, 1.0)
+
+
+def network_input(photo: torch.Tensor, mark: torch.Tensor) -> torch.Tensor:
+    """The 9-channel network input: [photo, log-compressed photo, lighting mark], each in [-1, 1].
+
+    Args:
+        photo: (B, 3, H, W) linear photo; clipped to [0, 1].
+        mark: (B, 3, H, W) lighting-mark image in [0, 1].
+
+    Returns:
+        (B, 9, H, W).
+    """
+    photo = photo.clamp(0.0, 1.0)
+    return torch.cat([photo, log_compress(photo), mark], dim=1) * 2.0 - 1.0
+
+
+# --- a training batch -------------------------------------------------------------------------------
+
+
+@dataclass
+class TrainingBatch:
+    """Everything one training step needs for the supervised and the variation-consistency losses.
+
+    Attributes:
+        maps, varied_maps: (B, 10, H, W) the materials M and M + xi.
+        variation: the xi that maps one to the other.
+        offsets: (B, 2) hand-held offsets [patch half-widths]; lights: (B, 3) flash positions.
+        inputs, varied_inputs: (B, 9, H, W) network inputs of the photos of M and of M + xi.
+        photos, varied_photos: (B, 3, H, W) the linear photos themselves.
+    """
+
+    maps: torch.Tensor
+    varied_maps: torch.Tensor
+    variation: Variation
+    offsets: torch.Tensor
+    lights: torch.Tensor
+    inputs: torch.Tensor
+    varied_inputs: torch.Tensor
+    photos: torch.Tensor
+    varied_photos: torch.Tensor
+    extras: dict = field(default_factory=dict)
+
+
+def synthesize(maps: torch.Tensor, generator: torch.Generator,
+               config: SynthesisConfig = SynthesisConfig()) -> TrainingBatch:
+    """Render and photograph a batch of materials and their variations (one renderer call).
+
+    M and M + xi share the flash position and the camera's gains (one camera, one shot each)
+    but not the noise.
+    """
+    from ..render import render_flash
+
+    batch, _, height, width = maps.shape
+    variation = sample_variation(batch, generator, config.max_rotation, config.max_shift)
+    varied = variation.apply(maps)
+    offsets = sample_offsets(batch, generator, config.fov, config.max_offset_deg, config.offset_sigma_divisor)
+    lights = geometry.light_positions(offsets, config.fov)
+    with torch.no_grad():
+        radiance = render_flash(torch.cat([maps, varied]), torch.cat([lights, lights]).view(2 * batch, 1, 3),
+                                fov=config.fov, convention=config.convention)[:, 0]
+    gains = sample_gains(batch, generator, config)
+    photos = simulate_photo(radiance, generator, config, gains=torch.cat([gains, gains]))
+    mark = lighting_mark(lights, height, width, config.fov, config.convention)
+    marks = torch.cat([mark, mark])
+    inputs = network_input(photos, marks)
+    return TrainingBatch(maps=maps, varied_maps=varied, variation=variation, offsets=offsets, lights=lights,
+                         inputs=inputs[:batch], varied_inputs=inputs[batch:], photos=photos[:batch],
+                         varied_photos=photos[batch:])

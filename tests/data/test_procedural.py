@@ -1,0 +1,94 @@
+"""The procedural generator: determinism, coverage of the families, ranges, plausibility, seamless tiling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mideepbasis.data.procedural import FAMILIES, GeneratorConfig, generate
+
+#: Families the generator must offer (the issue's list of what people photograph).
+REQUIRED_FAMILIES = {"tiles_bricks", "wood", "stone", "metal", "fabric", "leather", "plastic", "paper", "concrete",
+                     "ceramic", "organic", "sparkle"}
+
+#: The mean step across the wrap-around edge may be at most this many times the largest mean step
+#: between two neighbouring interior columns (or rows): a seam is a jump no interior column shows.
+#: (Structure such as grout makes some interior steps large, and a groove may sit on the edge
+#: itself, so the seam is compared with the largest step, not the typical one.)
+SEAM_RATIO = 1.5
+
+
+def test_all_required_families_are_registered():
+    assert REQUIRED_FAMILIES <= set(FAMILIES), sorted(REQUIRED_FAMILIES - set(FAMILIES))
+    assert len(FAMILIES) >= 12
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_same_seed_gives_the_same_material(family):
+    a, b = generate(11, size=64, family=family), generate(11, size=64, family=family)
+    assert torch.equal(a.to_tensor(), b.to_tensor())
+    c = generate(12, size=64, family=family)
+    assert not torch.equal(a.to_tensor(), c.to_tensor())
+
+
+def test_random_families_cover_every_family():
+    drawn = {generate(seed, size=32, config=GeneratorConfig(mix_probability=0.0, weathering=False)).provenance["family"]
+             for seed in range(40 * len(FAMILIES))}
+    assert drawn == set(FAMILIES)
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_values_stay_in_range_and_plausible(family):
+    for seed in range(12):
+        material = generate(seed, size=96, family=family)
+        maps = material.to_tensor()
+        normal, diffuse, roughness, specular = maps[:3], maps[3:6], maps[6:7], maps[7:]
+        assert torch.allclose((normal * normal).sum(0), torch.ones(96, 96), atol=1e-4)
+        assert (normal[2] > 0).all()
+        for name, m in (("diffuse", diffuse), ("roughness", roughness), ("specular", specular)):
+            assert m.min() >= 0 and m.max() <= 1, (seed, name)
+        # Dielectric pixels (low F0) are grey; metal pixels (high F0) have a dark diffuse albedo.
+        f0 = specular.mean(0)
+        dielectric = f0 < 0.1
+        if dielectric.any():
+            spread = (specular.max(0).values - specular.min(0).values)[dielectric]
+            assert (spread < 0.02).float().mean() > 0.99, (seed, "coloured dielectric F0")
+            assert (f0[dielectric] > 0.015).float().mean() > 0.95, (seed, "dielectric F0 below 0.02")
+        metal = f0 > 0.5
+        if metal.any():
+            assert (diffuse.mean(0)[metal] < 0.1).float().mean() > 0.98, (seed, "bright diffuse on metal")
+
+
+def seam_ratio(image: np.ndarray, axis: int) -> float:
+    """Mean step across the wrap-around edge over the largest interior mean step."""
+    other = 1 - axis
+    steps = np.abs(np.diff(image, axis=axis)).mean(axis=other)
+    first = np.take(image, 0, axis=axis)
+    last = np.take(image, -1, axis=axis)
+    return float(np.abs(first - last).mean() / max(float(steps.max()), 1e-6))
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_tileable_materials_wrap_without_a_seam(family):
+    ratios = []
+    for seed in range(4):
+        maps = generate(seed, size=128, family=family, tileable=True).to_tensor().numpy()
+        for channel in range(maps.shape[0]):
+            if maps[channel].std() < 1e-4:
+                continue
+            ratios += [seam_ratio(maps[channel], axis=1), seam_ratio(maps[channel], axis=0)]
+    assert ratios and max(ratios) < SEAM_RATIO, f"{family}: seam ratios up to {max(ratios):.2f}"
+
+
+def test_non_tileable_material_has_edges_that_differ():
+    maps = generate(3, size=128, family="concrete", tileable=False,
+                    config=GeneratorConfig(weathering=False, mix_probability=0.0)).to_tensor().numpy()
+    # Only that "tileable" is what makes the edges match: unrelated edges make a visible seam.
+    assert max(seam_ratio(maps[c], axis=axis) for c in range(10) for axis in (0, 1)) > SEAM_RATIO
+
+
+@pytest.mark.parametrize("size", [48, 200, 512])
+def test_any_resolution(size):
+    material = generate(5, size=size)
+    assert (material.height, material.width) == (size, size)
