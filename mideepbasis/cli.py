@@ -4,6 +4,7 @@
                        [--spp N] [--convention physical|deepbasis] [--env studio|sunsky|FILE]
     mideepbasis demo [-o OUT_DIR]
     mideepbasis data preview [--n 64] [--seed S] [--family NAME] [--tileable] -o SHEET.png
+    mideepbasis train --preset compact --data procedural [--data FOLDER ...] --steps N --batch B --out runs/NAME [--resume]
 """
 
 from __future__ import annotations
@@ -108,12 +109,64 @@ def _run_data_preview(args) -> None:
     print(f"wrote {path}")
 
 
+def _add_train(subparsers) -> None:
+    from .train import TrainConfig
+
+    defaults = TrainConfig()
+    parser = subparsers.add_parser("train", help="train DeepBasisNet on synthesised flash photos",
+                                   description="Train DeepBasisNet (L_sup + 0.05 L_vc). Launch under torchrun for "
+                                               "several processes; --resume continues a killed run exactly.")
+    parser.add_argument("--preset", choices=["compact", "paper", "tiny"], default=defaults.preset)
+    parser.add_argument("--data", action="append", default=None, metavar="procedural|FOLDER",
+                        help="material source, repeatable (default: procedural)")
+    parser.add_argument("--steps", type=_positive_int, default=defaults.steps)
+    parser.add_argument("--batch", type=_positive_int, default=defaults.batch, help="materials per step and process")
+    parser.add_argument("--size", type=_positive_int, default=defaults.size, help="training resolution [pixels]")
+    parser.add_argument("--lr", type=float, default=defaults.lr)
+    parser.add_argument("--local-lr", type=float, default=defaults.local_lr)
+    parser.add_argument("--vc-weight", type=float, default=defaults.vc_weight, help="0 turns the VC loss off")
+    parser.add_argument("--bases", type=_positive_int, default=None, help="number N of basis materials")
+    parser.add_argument("--no-local", action="store_true", help="ablation: no local bases")
+    parser.add_argument("--no-global", action="store_true", help="ablation: no global bases")
+    parser.add_argument("--no-bases", action="store_true", help="ablation: direct per-pixel prediction")
+    parser.add_argument("--seed", type=int, default=defaults.seed)
+    parser.add_argument("--workers", type=int, default=defaults.workers, help="material-generating worker processes")
+    parser.add_argument("--checkpoint-minutes", type=float, default=defaults.checkpoint_minutes)
+    parser.add_argument("--validate-every", type=int, default=defaults.validate_every)
+    parser.add_argument("--log-every", type=_positive_int, default=defaults.log_every)
+    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default=defaults.device)
+    parser.add_argument("--out", type=Path, required=True, metavar="runs/NAME")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    parser.set_defaults(run=_run_train)
+
+
+def _run_train(args) -> None:
+    from .train import TrainConfig, train
+
+    network = {}
+    if args.bases:
+        network["num_bases"] = args.bases
+    for flag, key in (("no_local", "use_local"), ("no_global", "use_global"), ("no_bases", "use_bases")):
+        if getattr(args, flag):
+            network[key] = False
+    config = TrainConfig(out=str(args.out), preset=args.preset, network=network, data=tuple(args.data or ["procedural"]),
+                         steps=args.steps, batch=args.batch, size=args.size, lr=args.lr, local_lr=args.local_lr,
+                         vc_weight=args.vc_weight, seed=args.seed, workers=args.workers,
+                         checkpoint_minutes=args.checkpoint_minutes, validate_every=args.validate_every,
+                         log_every=args.log_every, device=args.device)
+    if not args.resume and (args.out / "checkpoint.safetensors").exists():
+        raise InputError(f"{args.out} already holds a run: pass --resume to continue it or choose another --out")
+    path = train(config, resume=args.resume)
+    print(f"wrote {path}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mideepbasis", description="SVBRDF capture from one hand-held flash photo.")
     subparsers = parser.add_subparsers(dest="command", required=True)
     _add_render(subparsers)
     _add_demo(subparsers)
     _add_data(subparsers)
+    _add_train(subparsers)
     return parser
 
 

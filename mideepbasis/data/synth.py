@@ -108,11 +108,11 @@ class Variation:
         extra = (1,) * (maps.ndim - 2)
         cos = torch.cos(self.rotation).view(-1, *extra).to(maps)
         sin = torch.sin(self.rotation).view(-1, *extra).to(maps)
-        nx, ny, nz = maps[:, 0], maps[:, 1], maps[:, 2]
-        normal = torch.stack([cos * nx - sin * ny, sin * nx + cos * ny, nz], dim=1)
+        # split, not indexing: its backward concatenates instead of zero-filling full tensors.
+        nx, ny, nz, rest = maps.split([1, 1, 1, 7], dim=1)
+        cos, sin = cos.unsqueeze(1), sin.unsqueeze(1)
         shift = self.shift.view(self.shift.shape[0], 7, *extra).to(maps)
-        rest = (maps[:, 3:] + shift) / (1.0 + shift)
-        return torch.cat([normal, rest], dim=1)
+        return torch.cat([cos * nx - sin * ny, sin * nx + cos * ny, nz, (rest + shift) / (1.0 + shift)], dim=1)
 
 
 def sample_variation(batch: int, generator: torch.Generator, max_rotation: float = math.pi / 6,

@@ -1,0 +1,331 @@
+"""DeepBasisNet: joint prediction of global and local basis materials and their blending weights.
+
+DESIGN section 1. From the 9-channel input (photo, log-compressed photo, lighting mark):
+
+- a shared encoder (strided 4x4 convolutions, instance norm, and a global feature track that
+  is fed back into every level, after Deschaintre et al. 2018) down to a bottleneck;
+- a weight decoder (nearest upsampling, two 3x3 convolutions per level, skip connections, the
+  same global track) to N weight maps, non-negative and summing to 1 at every pixel;
+- a global unit (an MLP on the pooled bottleneck) to N global bases of 10 parameters;
+- a local unit (a NAFNet) to per-pixel deviations of every basis, from the input, the weights,
+  the global bases and the error map between the photo and a rendering of the globally-blended
+  material under the same light (through the renderer interface, differentiably).
+
+Bases live in the network's *signed* space, where every parameter is in [-1, 1]:
+``[n (3), 2 d - 1 (3), 2 r - 1, 2 s - 1 (3)]``. ``to_maps`` and ``to_signed`` convert to and
+from the maps of DESIGN section 3. Shapes: inputs (B, 9, H, W); lights (B, 3); weights
+(B, N, H, W); global bases (B, N, 10); bases (B, N, 10, H, W); maps (B, 10, H, W).
+
+Two presets: ``paper`` (the published sizes, laid out so that the authors' weights can be
+mapped onto it) and ``compact`` (for a CPU). Ablation switches: no local bases, no global
+bases, no bases at all (the same encoder-decoder predicting the maps directly), and N.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .. import constants
+from .nafnet import NAFNet
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Sizes and switches of DeepBasisNet."""
+
+    encoder_channels: tuple[int, ...] = (64, 128, 256, 512, 512, 512, 512, 512)
+    """Output channels of the encoder levels; each level halves the resolution."""
+
+    decoder_channels: tuple[int, ...] = (512, 512, 512, 512, 256, 128, 64)
+    """Output channels of the decoder levels but the last (which outputs the N weights); one level
+    per encoder level."""
+
+    mlp_width: int = 512
+    """Width of the hidden layers of the global unit."""
+
+    mlp_hidden_layers: int = 3
+    """Hidden layers of the global unit (plus the output layer: the paper's 5-layer MLP counts the
+    input and output too)."""
+
+    local_width: int = 16
+    """Channels of the first NAFNet level."""
+
+    local_encoder_blocks: tuple[int, ...] = (2, 2, 4, 8)
+    """NAF blocks per NAFNet encoder level."""
+
+    local_middle_blocks: int = 12
+    """NAF blocks at the bottom of the NAFNet."""
+
+    local_decoder_blocks: tuple[int, ...] = (2, 2, 2, 2)
+    """NAF blocks per NAFNet decoder level."""
+
+    local_ending_kernel: int = 3
+    """Kernel size of the NAFNet's last convolution (to N x 10 channels at full resolution)."""
+
+    num_bases: int = constants.NUM_BASES
+    """Number N of basis materials."""
+
+    use_global: bool = True
+    """Predict global bases (else the local unit predicts the whole bases per pixel)."""
+
+    use_local: bool = True
+    """Predict local deviations (else the bases are the global ones)."""
+
+    use_bases: bool = True
+    """Use the basis model at all (else the encoder-decoder predicts the 10 map channels directly)."""
+
+    convention: str = constants.DEFAULT_CONVENTION
+    """Shading convention of the error-map render (and of the training renders)."""
+
+    input_channels: int = 9
+    """Channels of the network input."""
+
+    @property
+    def stride(self) -> int:
+        """Input sizes must be multiples of this [pixels]."""
+        return 2 ** len(self.encoder_channels)
+
+
+PRESETS = {
+    "paper": NetworkConfig(),
+    "compact": NetworkConfig(encoder_channels=(32, 64, 96, 128, 160, 192), decoder_channels=(160, 128, 96, 64, 32),
+                             mlp_width=256, mlp_hidden_layers=3, local_width=8, local_encoder_blocks=(1, 1, 1, 1),
+                             local_middle_blocks=2, local_decoder_blocks=(1, 1, 1, 1), local_ending_kernel=1),
+    "tiny": NetworkConfig(encoder_channels=(8, 16, 16, 16), decoder_channels=(16, 16, 8), mlp_width=32,
+                          mlp_hidden_layers=1, local_width=4, local_encoder_blocks=(1, 1), local_middle_blocks=1,
+                          local_decoder_blocks=(1, 1), local_ending_kernel=1),
+}
+
+
+def preset(name: str, **overrides) -> NetworkConfig:
+    """A named configuration (``paper``, ``compact``, ``tiny`` for tests) with fields overridden."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown network preset {name!r}; expected one of {sorted(PRESETS)}")
+    return replace(PRESETS[name], **overrides)
+
+
+# --- spaces ---------------------------------------------------------------------------------------
+
+
+def to_signed(maps: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """Maps [n, d, r, s] to the signed space [n, 2d - 1, 2r - 1, 2s - 1] along ``dim``."""
+    normal, rest = maps.split([3, 7], dim=dim)
+    return torch.cat([normal, rest * 2.0 - 1.0], dim=dim)
+
+
+def to_maps(signed: torch.Tensor, dim: int = 1) -> torch.Tensor:
+    """Signed parameters to maps along ``dim``: unit normals with z >= 0, others clipped to [0, 1]."""
+    normal, rest = signed.split([3, 7], dim=dim)
+    x, y, z = normal.split(1, dim=dim)
+    normal = torch.cat([x, y, z.clamp(min=0.0)], dim=dim)
+    normal = normal / (normal * normal).sum(dim=dim, keepdim=True).clamp(min=1e-12).sqrt()
+    return torch.cat([normal, (rest * 0.5 + 0.5).clamp(0.0, 1.0)], dim=dim)
+
+
+def normalize_basis_normals(signed: torch.Tensor, dim: int) -> torch.Tensor:
+    """Unit-length normal part (the first 3 entries along ``dim``) of signed bases."""
+    normal, rest = signed.split([3, 7], dim=dim)
+    normal = normal / ((normal * normal).sum(dim=dim, keepdim=True).sqrt() + 1e-12)
+    return torch.cat([normal, rest], dim=dim)
+
+
+def normalize_weights(raw: torch.Tensor) -> torch.Tensor:
+    """(B, N, H, W) decoder output in [-1, 1] to non-negative weights summing to 1 per pixel."""
+    positive = raw * 0.5 + 0.5
+    return positive / (positive.sum(dim=1, keepdim=True) + 1e-6)
+
+
+def blend(weights: torch.Tensor, bases: torch.Tensor) -> torch.Tensor:
+    """sum_i w_i b_i: weights (B, N, H, W) and bases (B, N, 10) or (B, N, 10, H, W) -> (B, 10, H, W)."""
+    if bases.ndim == 3:
+        return torch.einsum("bnhw,bnc->bchw", weights, bases)
+    # One basis at a time, so no (B, N, 10, H, W) product is materialised; unbind (not indexing)
+    # so that the backward pass stacks the gradients once instead of zero-filling N full tensors.
+    total = None
+    for weight, basis in zip(weights.unbind(1), bases.unbind(1)):
+        term = weight.unsqueeze(1) * basis
+        total = term if total is None else total + term
+    return total
+
+
+# --- the shared encoder and the weight decoder ---------------------------------------------------------
+
+
+class Encoder(nn.Module):
+    """Strided 4x4 convolutions with a global feature track (mean of each level, fed back in)."""
+
+    def __init__(self, in_channels: int, channels: tuple[int, ...]):
+        super().__init__()
+        ins = (in_channels,) + channels[:-1]
+        # The global track after level i has as many features as level i + 1 has channels.
+        global_sizes = channels[1:] + channels[-1:]
+        self.convs = nn.ModuleList(nn.Conv2d(i, o, 4, stride=2, padding=1) for i, o in zip(ins, channels))
+        self.norms = nn.ModuleList(nn.InstanceNorm2d(c, affine=True) for c in channels[1:-1])
+        self.global_fcs = nn.ModuleList([nn.Linear(in_channels, global_sizes[0])] + [
+            nn.Linear(c + g, gs) for c, g, gs in zip(channels[1:], global_sizes[:-1], global_sizes[1:])])
+        self.global_to_maps = nn.ModuleList(nn.Linear(g, c, bias=False) for g, c in zip(global_sizes[:-1], channels[1:]))
+        self.global_size = global_sizes[-1]
+
+    def forward(self, x: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """Returns the outputs of every level and the final global features (B, global_size)."""
+        levels = []
+        global_features = F.selu(self.global_fcs[0](x.mean(dim=(2, 3))))
+        for index, conv in enumerate(self.convs):
+            x = conv(x if index == 0 else F.leaky_relu(x, 0.2))
+            if index > 0:
+                mean = torch.cat([global_features, x.mean(dim=(2, 3))], dim=1)
+                if index < len(self.convs) - 1:
+                    x = self.norms[index - 1](x)
+                x = x + self.global_to_maps[index - 1](global_features)[:, :, None, None]
+                global_features = F.selu(self.global_fcs[index](mean))
+            levels.append(x)
+        return levels, global_features
+
+
+class WeightDecoder(nn.Module):
+    """Nearest upsampling and two 3x3 convolutions per level, U-Net skips and the global track."""
+
+    def __init__(self, encoder_channels: tuple[int, ...], channels: tuple[int, ...], out_channels: int,
+                 global_size: int):
+        super().__init__()
+        outs = channels + (out_channels,)
+        ins = (encoder_channels[-1],) + tuple(2 * c for c in outs[:-1])
+        if len(outs) != len(encoder_channels):
+            raise ValueError("the decoder needs one level per encoder level")
+        self.convs = nn.ModuleList(nn.Sequential(nn.Conv2d(i, o, 3, padding=1), nn.Conv2d(o, o, 3, padding=1))
+                                   for i, o in zip(ins, outs))
+        self.norms = nn.ModuleList(nn.InstanceNorm2d(o, affine=True) for o in outs[:-1])
+        globals_in = (global_size,) + outs[:-2]
+        self.global_fcs = nn.ModuleList(nn.Linear(o + g, o) for o, g in zip(outs[:-1], globals_in))
+        self.global_to_maps = nn.ModuleList(nn.Linear(g, o, bias=False) for g, o in zip(globals_in + outs[-2:-1], outs))
+
+    def forward(self, levels: list[torch.Tensor], global_features: torch.Tensor) -> torch.Tensor:
+        x = levels[-1]
+        for index, convs in enumerate(self.convs):
+            if index > 0:
+                x = torch.cat([x, levels[-(index + 1)]], dim=1)
+            x = convs(F.leaky_relu(F.interpolate(x, scale_factor=2, mode="nearest"), 0.2))
+            last = index == len(self.convs) - 1
+            if not last:
+                mean = torch.cat([global_features, x.mean(dim=(2, 3))], dim=1)
+                x = self.norms[index](x)
+            x = x + self.global_to_maps[index](global_features)[:, :, None, None]
+            if not last:
+                global_features = F.selu(self.global_fcs[index](mean))
+        return x
+
+
+def mlp(in_features: int, width: int, hidden_layers: int, out_features: int) -> nn.Sequential:
+    """Linear layers with leaky ReLUs between them and a tanh on the output ([-1, 1])."""
+    layers, size = [], in_features
+    for _ in range(hidden_layers):
+        layers += [nn.Linear(size, width), nn.LeakyReLU(0.2)]
+        size = width
+    return nn.Sequential(*layers, nn.Linear(size, out_features), nn.Tanh())
+
+
+# --- the network -------------------------------------------------------------------------------------
+
+
+@dataclass
+class DeepBasisOutput:
+    """What DeepBasisNet predicts (see the module docstring for shapes and spaces)."""
+
+    maps: torch.Tensor
+    """(B, 10, H, W) blended maps: unit normals, d, r, s in [0, 1]."""
+
+    weights: torch.Tensor | None = None
+    """(B, N, H, W) blending weights, non-negative, summing to 1."""
+
+    global_bases: torch.Tensor | None = None
+    """(B, N, 10) global bases, signed space."""
+
+    bases: torch.Tensor | None = None
+    """(B, N, 10, H, W) global plus local bases, signed space."""
+
+    deviations: torch.Tensor | None = None
+    """(B, N, 10, H, W) local deviations, signed space."""
+
+    error: torch.Tensor | None = None
+    """(B, 3, H, W) rendering of the globally-blended material minus the photo."""
+
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def signed_maps(self) -> torch.Tensor:
+        """The blend in signed space, before normalisation and clipping (what the loss compares)."""
+        return self.extras.get("signed_maps", to_signed(self.maps))
+
+
+class DeepBasisNet(nn.Module):
+    """The DeepBasis network (see the module docstring)."""
+
+    def __init__(self, config: NetworkConfig = PRESETS["compact"]):
+        super().__init__()
+        self.config = config
+        if len(config.decoder_channels) != len(config.encoder_channels) - 1:
+            raise ValueError("decoder_channels needs one entry fewer than encoder_channels (the last level outputs the weights)")
+        n = config.num_bases
+        out_channels = n if config.use_bases else constants.BASIS_CHANNELS
+        self.encoder = Encoder(config.input_channels, config.encoder_channels)
+        self.weight_decoder = WeightDecoder(config.encoder_channels, config.decoder_channels, out_channels,
+                                            self.encoder.global_size)
+        if config.use_bases and config.use_global:
+            self.global_unit = mlp(config.encoder_channels[-1], config.mlp_width, config.mlp_hidden_layers,
+                                   n * constants.BASIS_CHANNELS)
+        if config.use_bases and (config.use_local or not config.use_global):
+            local_in = config.input_channels + 3 + n + n * constants.BASIS_CHANNELS
+            self.local_unit = NAFNet(local_in, n * constants.BASIS_CHANNELS, config.local_width,
+                                     config.local_encoder_blocks, config.local_middle_blocks, config.local_decoder_blocks,
+                                     config.local_ending_kernel)
+
+    def forward(self, inputs: torch.Tensor, lights: torch.Tensor | None = None,
+                fov: float = constants.DEFAULT_FOV_DEG) -> DeepBasisOutput:
+        """Predict the material seen in ``inputs`` (B, 9, H, W) taken under flashes at ``lights`` (B, 3)."""
+        config = self.config
+        height, width = inputs.shape[-2:]
+        if height % config.stride or width % config.stride:
+            raise ValueError(f"input size {height}x{width} is not a multiple of the network's stride {config.stride}")
+        levels, global_features = self.encoder(inputs)
+        decoded = torch.tanh(self.weight_decoder(levels, global_features))
+        if not config.use_bases:
+            return DeepBasisOutput(maps=to_maps(decoded), extras={"signed_maps": decoded})
+
+        batch, n = inputs.shape[0], config.num_bases
+        weights = normalize_weights(decoded)
+        if config.use_global:
+            pooled = levels[-1].mean(dim=(2, 3))
+            global_bases = normalize_basis_normals(self.global_unit(pooled).view(batch, n, constants.BASIS_CHANNELS), dim=2)
+        else:
+            global_bases = inputs.new_zeros(batch, n, constants.BASIS_CHANNELS)
+        output = DeepBasisOutput(maps=None, weights=weights, global_bases=global_bases)
+        if not hasattr(self, "local_unit"):
+            signed = blend(weights, global_bases)
+            output.maps, output.extras["signed_maps"] = to_maps(signed), signed
+            return output
+
+        if lights is None:
+            raise ValueError("the local unit needs the flash positions (lights) for its error map")
+        from ..render import render_flash
+
+        global_maps = to_maps(blend(weights, global_bases))
+        photo = inputs[:, :3] * 0.5 + 0.5
+        rendered = render_flash(global_maps, lights.view(batch, 1, 3), fov=fov, convention=config.convention)[:, 0]
+        error = rendered.clamp(0.0, 1.0) - photo
+        # The global bases enter as constant planes (N x 10 channels) without being built.
+        local_inputs = torch.cat([inputs, error, weights], dim=1)
+        deviations = torch.tanh(self.local_unit(local_inputs, planes=global_bases.reshape(batch, -1)))
+        deviations = deviations.view(batch, n, constants.BASIS_CHANNELS, height, width)
+        bases = normalize_basis_normals(global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
+        signed = blend(weights, bases)
+        output.maps, output.bases, output.deviations, output.error = to_maps(signed), bases, deviations, error
+        output.extras["signed_maps"] = signed
+        return output
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())

@@ -1,0 +1,468 @@
+"""Training DeepBasisNet: L = L_sup + 0.05 L_vc on synthesised flash photos, resumable, DDP-ready.
+
+    mideepbasis train --preset compact --data procedural --steps 20000 --batch 8 --out runs/compact
+    torchrun --nproc_per_node 2 -m mideepbasis.cli train ...          # several processes, no change
+
+Every step draws a batch of materials (procedural, or folders of materials), synthesises their
+photos and the photos of their variations M + xi under hand-held flashes (``data.synth``),
+predicts both and minimises
+
+    L_sup = |maps(M) - M|_1                                  (signed space, as the paper)
+    L_vc  = |xi(bases(M)) - bases(M + xi)|_1 + |maps(M + xi) - (M + xi)|_1
+
+with Adam and a cosine learning-rate decay. Material number i of the run is always the same
+material and the synthesis generator's state is saved, so ``--resume`` continues exactly where a
+killed run stopped. Rank 0 writes ``OUT/train.jsonl`` (losses, learning rate, speed),
+``OUT/loss.png``, validation sheets ``OUT/validation/step_XXXXXXX.png``, ``OUT/checkpoint.safetensors``
+every few minutes (atomically) and ``OUT/model.safetensors`` at the end.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from . import constants
+from .data.synth import SynthesisConfig, Variation, synthesize
+from .errors import InputError
+from .model.checkpoint import read_checkpoint, save_checkpoint
+from .model.network import DeepBasisNet, DeepBasisOutput, preset, to_signed
+
+
+@dataclass
+class TrainConfig:
+    """A training run. Stored, resolved, in every checkpoint of the run."""
+
+    out: str = "runs/default"
+    """Output folder of the run [path]."""
+
+    preset: str = "compact"
+    """Network preset: ``compact``, ``paper`` or ``tiny`` (tests)."""
+
+    network: dict = field(default_factory=dict)
+    """Overrides of the preset's NetworkConfig fields (ablations: use_local, use_global, use_bases, num_bases)."""
+
+    data: tuple[str, ...] = ("procedural",)
+    """Material sources: ``procedural`` and/or folders (material folders, PBR folders, Deschaintre strips)."""
+
+    steps: int = 1000
+    """Optimisation steps."""
+
+    batch: int = 8
+    """Materials per step and process (each seen twice: M and M + xi)."""
+
+    size: int = constants.DEFAULT_RESOLUTION
+    """Training resolution [pixels]; a multiple of the network's stride."""
+
+    lr: float = 3e-4
+    """Adam learning rate of the encoder, weight decoder and global unit."""
+
+    local_lr: float = 1e-3
+    """Adam learning rate of the local unit (the paper trains it faster too)."""
+
+    final_lr_fraction: float = 0.01
+    """The cosine decay ends at this fraction of the learning rates."""
+
+    vc_weight: float = constants.VC_LOSS_WEIGHT
+    """Weight of the variation-consistency loss; 0 turns it off (and halves the work)."""
+
+    seed: int = 0
+    """Seed of the run: materials, network initialisation, synthesis."""
+
+    workers: int = 2
+    """DataLoader worker processes generating materials."""
+
+    checkpoint_minutes: float = 5.0
+    """Write the resumable checkpoint this often [minutes]."""
+
+    log_every: int = 10
+    """Log the losses every this many steps."""
+
+    validate_every: int = 250
+    """Write validation renders and metrics every this many steps (0: never)."""
+
+    device: str = "auto"
+    """``auto`` (CUDA when available), ``cpu`` or ``cuda``."""
+
+    synthesis: dict = field(default_factory=dict)
+    """Overrides of the SynthesisConfig fields (noise, exposure, field of view, ...)."""
+
+
+# --- data --------------------------------------------------------------------------------------
+
+
+class TrainingMaterials(Dataset):
+    """Item i: a (10, size, size) material from one of the sources, always the same for the same i.
+
+    Sources are drawn in turn by a hash of i; folder materials are cropped or resized to the
+    training size and randomly flipped and turned by 90 degrees (normals turned with them).
+    """
+
+    def __init__(self, sources: tuple[str, ...], size: int, seed: int):
+        from .data.procedural import GeneratorConfig
+
+        self.size, self.seed = size, seed
+        self.readers = []
+        self.procedural = None
+        for source in sources:
+            if source == "procedural":
+                from .data.datasets import ProceduralMaterials
+
+                self.procedural = ProceduralMaterials(seed, GeneratorConfig(size=size))
+                self.readers.append("procedural")
+            else:
+                self.readers.append(self._folder_reader(source))
+
+    @staticmethod
+    def _folder_reader(source: str):
+        from .data.datasets import DeschaintreDataset, MaterialFolderDataset, PBRFolderDataset
+
+        path = Path(source).resolve()
+        if "shared" in path.parts and "data" in path.parts:
+            raise InputError(f"{source}: the shared evaluation data is never used for training")
+        if not path.is_dir():
+            raise InputError(f"{source}: no such data folder (use 'procedural' or a folder of materials)")
+        for reader_type in (MaterialFolderDataset, PBRFolderDataset, DeschaintreDataset):
+            reader = reader_type(path)
+            if len(reader):
+                return reader
+        raise InputError(f"{source}: no materials found (material folders, PBR maps or Deschaintre strips)")
+
+    def __len__(self) -> int:
+        return 2**62
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        rng = np.random.default_rng([self.seed, index, 7])
+        reader = self.readers[int(rng.integers(len(self.readers)))]
+        if reader == "procedural":
+            return self.procedural[index]["maps"]
+        for attempt in range(len(reader)):
+            material = reader.try_load(reader.sources[int(rng.integers(len(reader)))])
+            if material is not None:
+                if isinstance(material, tuple):
+                    material = material[0]
+                return augment(material.to_tensor(), self.size, rng)
+        raise InputError(f"no readable material among {len(reader)} in a training folder")
+
+
+def augment(maps: torch.Tensor, size: int, rng: np.random.Generator) -> torch.Tensor:
+    """A random square crop (or resize) to size x size, flips and quarter turns, normals kept consistent."""
+    _, height, width = maps.shape
+    if min(height, width) < size:
+        maps = torch.nn.functional.interpolate(maps[None], size=(size, size), mode="bilinear", align_corners=False)[0]
+    else:
+        top, left = int(rng.integers(height - size + 1)), int(rng.integers(width - size + 1))
+        maps = maps[:, top:top + size, left:left + size]
+    maps = maps.clone()
+    if rng.random() < 0.5:  # mirror left-right: x flips
+        maps = maps.flip(-1)
+        maps[0] = -maps[0]
+    for _ in range(int(rng.integers(4))):  # quarter turn counter-clockwise: (x, y) -> (-y, x)
+        maps = maps.rot90(1, dims=(-2, -1))
+        x, y = maps[0].clone(), maps[1].clone()
+        maps[0], maps[1] = -y, x
+    maps[:3] = torch.nn.functional.normalize(maps[:3], dim=0)
+    return maps
+
+
+class StepBatchSampler(Sampler):
+    """Batches of material numbers in step order: step s, rank r takes s*B*R + r*B + (0..B-1)."""
+
+    def __init__(self, batch: int, start_step: int, rank: int, world_size: int):
+        self.batch, self.start_step, self.rank, self.world_size = batch, start_step, rank, world_size
+
+    def __iter__(self):
+        step = self.start_step
+        while True:
+            first = (step * self.world_size + self.rank) * self.batch
+            yield list(range(first, first + self.batch))
+            step += 1
+
+
+# --- losses ------------------------------------------------------------------------------------
+
+
+def vary_signed(variation: Variation, signed: torch.Tensor) -> torch.Tensor:
+    """Apply xi to signed-space parameters (B, 10, ...) (maps or bases with channels at dim 1)."""
+    normal, rest = signed.split([3, 7], dim=1)
+    varied = variation.apply(torch.cat([normal, rest * 0.5 + 0.5], dim=1))
+    return torch.cat([varied[:, :3], varied[:, 3:] * 2.0 - 1.0], dim=1)
+
+
+def supervised_loss(output: DeepBasisOutput, maps: torch.Tensor) -> torch.Tensor:
+    """L1 between the predicted blend and the ground truth, in signed space."""
+    return (output.signed_maps - to_signed(maps)).abs().mean()
+
+
+def variation_consistency_loss(original: DeepBasisOutput, varied: DeepBasisOutput, variation: Variation,
+                               varied_maps: torch.Tensor) -> torch.Tensor:
+    """|xi(bases(M)) - bases(M + xi)|_1 + |maps(M + xi) - (M + xi)|_1 (DeepBasis's L_vc).
+
+    Without bases (the direct ablation) the maps stand in for the bases.
+    """
+    if original.bases is not None:
+        source, target = original.bases.transpose(1, 2), varied.bases.transpose(1, 2)  # (B, 10, N, H, W)
+    elif original.global_bases is not None:
+        source, target = original.global_bases.transpose(1, 2), varied.global_bases.transpose(1, 2)
+    else:
+        source, target = original.signed_maps, varied.signed_maps
+    consistency = (vary_signed(variation, source) - target).abs().mean()
+    return consistency + supervised_loss(varied, varied_maps)
+
+
+def split_output(output: DeepBasisOutput, batch: int) -> tuple[DeepBasisOutput, DeepBasisOutput]:
+    """The first ``batch`` items and the rest, as two outputs."""
+    def part(selection):
+        values = {f.name: (getattr(output, f.name)[selection] if isinstance(getattr(output, f.name), torch.Tensor)
+                           else getattr(output, f.name)) for f in dataclasses.fields(output) if f.name != "extras"}
+        extras = {k: v[selection] for k, v in output.extras.items() if isinstance(v, torch.Tensor)}
+        return DeepBasisOutput(**values, extras=extras)
+
+    return part(slice(0, batch)), part(slice(batch, None))
+
+
+# --- the loop ------------------------------------------------------------------------------------
+
+
+def _distributed() -> tuple[int, int]:
+    """(rank, world size); initialises the process group when launched by torchrun."""
+    if "RANK" in os.environ and "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1:
+        if not dist.is_initialized():
+            dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _device(name: str, rank: int) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        index = int(os.environ.get("LOCAL_RANK", rank)) % max(1, torch.cuda.device_count())
+        torch.cuda.set_device(index)
+        return torch.device("cuda", index)
+    return torch.device(name)
+
+
+def learning_rate_factor(step: int, steps: int, final_fraction: float) -> float:
+    """Cosine decay from 1 at step 0 to ``final_fraction`` at the last step."""
+    progress = min(1.0, step / max(1, steps - 1))
+    return final_fraction + (1 - final_fraction) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def _optimizer_tensors(optimizer: torch.optim.Optimizer, names: dict) -> tuple[dict, dict]:
+    """Adam's state as named tensors (no pickling) and the small numbers as JSON."""
+    tensors, steps = {}, {}
+    for parameter, state in optimizer.state.items():
+        name = names[parameter]
+        tensors[f"optimizer/{name}/exp_avg"] = state["exp_avg"]
+        tensors[f"optimizer/{name}/exp_avg_sq"] = state["exp_avg_sq"]
+        steps[name] = float(state["step"])
+    return tensors, steps
+
+
+def _restore_optimizer(optimizer, names: dict, tensors: dict, steps: dict) -> None:
+    for parameter, name in names.items():
+        if name in steps:
+            optimizer.state[parameter] = {"step": torch.tensor(steps[name]),
+                                          "exp_avg": tensors[f"optimizer/{name}/exp_avg"].to(parameter),
+                                          "exp_avg_sq": tensors[f"optimizer/{name}/exp_avg_sq"].to(parameter)}
+
+
+class Trainer:
+    """One training run (see the module docstring)."""
+
+    def __init__(self, config: TrainConfig, resume: bool = False, progress: bool = True):
+        self.config = config
+        self.rank, self.world_size = _distributed()
+        self.device = _device(config.device, self.rank)
+        self.out = Path(config.out)
+        self.progress = progress and self.rank == 0
+        torch.manual_seed(config.seed)
+        network_config = preset(config.preset, **{k: tuple(v) if isinstance(v, list) else v
+                                                 for k, v in config.network.items()})
+        if config.size % network_config.stride:
+            raise InputError(f"training size {config.size} is not a multiple of the {config.preset} network's "
+                             f"stride {network_config.stride}")
+        self.synthesis = SynthesisConfig(**{**config.synthesis, "convention": network_config.convention})
+        self.model = DeepBasisNet(network_config).to(self.device)
+        local = [p for n, p in self.model.named_parameters() if n.startswith("local_unit.")]
+        rest = [p for n, p in self.model.named_parameters() if not n.startswith("local_unit.")]
+        groups = [{"params": rest, "lr": config.lr, "initial_lr": config.lr}]
+        if local:
+            groups.append({"params": local, "lr": config.local_lr, "initial_lr": config.local_lr})
+        self.optimizer = torch.optim.Adam(groups)
+        self.parameter_names = {p: n for n, p in self.model.named_parameters()}
+        self.generator = torch.Generator().manual_seed(config.seed * 1_000_003 + self.rank)
+        self.step = 0
+        self.elapsed = 0.0
+        if resume:
+            self._resume()
+        if self.world_size > 1:
+            self.model = torch.nn.parallel.DistributedDataParallel(
+                self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+
+    # --- checkpoints ---------------------------------------------------------------------------
+
+    def _resume(self) -> None:
+        path = self.out / "checkpoint.safetensors"
+        document, tensors = read_checkpoint(path)
+        state = document.get("training_state")
+        if state is None:
+            raise InputError(f"{path}: has no training state to resume from")
+        weights = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
+        self.model.load_state_dict(weights)
+        _restore_optimizer(self.optimizer, self.parameter_names, tensors, state["optimizer_steps"])
+        self.step, self.elapsed = state["step"], state["elapsed_seconds"]
+        self.generator.set_state(tensors[f"state/generator_rank{self.rank}"])
+        self._set_learning_rate()
+
+    def save(self, final: bool = False) -> None:
+        """Write the resumable checkpoint (and the plain model at the end); rank 0 only."""
+        generator_states = [self.generator.get_state()]
+        if self.world_size > 1:
+            gathered = [torch.empty_like(generator_states[0]) for _ in range(self.world_size)]
+            dist.all_gather_object(gathered, generator_states[0])
+            generator_states = gathered
+        if self.rank != 0:
+            return
+        model = getattr(self.model, "module", self.model)
+        optimizer_tensors, optimizer_steps = _optimizer_tensors(self.optimizer, self.parameter_names)
+        extra = {f"state/generator_rank{r}": s for r, s in enumerate(generator_states)}
+        training = self.training_record()
+        save_checkpoint(self.out / "checkpoint.safetensors", model, metadata={
+            "training": training, "training_state": {"step": self.step, "elapsed_seconds": self.elapsed,
+                                                     "optimizer_steps": optimizer_steps}},
+            extra_tensors={**optimizer_tensors, **extra})
+        if final:
+            save_checkpoint(self.out / "model.safetensors", model, metadata={"training": training})
+
+    def training_record(self) -> dict:
+        return {"config": dataclasses.asdict(self.config), "steps_done": self.step, "world_size": self.world_size,
+                "device": str(self.device), "wall_seconds": round(self.elapsed, 1),
+                "data": list(self.config.data), "command": " ".join(sys.argv)}
+
+    # --- one step --------------------------------------------------------------------------------
+
+    def _set_learning_rate(self) -> None:
+        factor = learning_rate_factor(self.step, self.config.steps, self.config.final_lr_fraction)
+        for group in self.optimizer.param_groups:
+            group["lr"] = group["initial_lr"] * factor
+
+    def train_step(self, maps: torch.Tensor) -> dict:
+        config = self.config
+        batch = synthesize(maps, self.generator, self.synthesis)
+        use_vc = config.vc_weight > 0
+        inputs = torch.cat([batch.inputs, batch.varied_inputs]) if use_vc else batch.inputs
+        lights = torch.cat([batch.lights, batch.lights]) if use_vc else batch.lights
+        output = self.model(inputs.to(self.device), lights.to(self.device), fov=self.synthesis.fov)
+        target = batch.maps.to(self.device)
+        if use_vc:
+            original, varied = split_output(output, maps.shape[0])
+            variation = Variation(batch.variation.rotation.to(self.device), batch.variation.shift.to(self.device))
+            sup = supervised_loss(original, target)
+            vc = variation_consistency_loss(original, varied, variation, batch.varied_maps.to(self.device))
+        else:
+            sup, vc = supervised_loss(output, target), torch.zeros((), device=self.device)
+        loss = sup + config.vc_weight * vc
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.step += 1
+        self._set_learning_rate()
+        return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item()}
+
+    # --- the loop ----------------------------------------------------------------------------------
+
+    def loader(self) -> DataLoader:
+        dataset = TrainingMaterials(tuple(self.config.data), self.config.size, self.config.seed)
+        sampler = StepBatchSampler(self.config.batch, self.step, self.rank, self.world_size)
+        workers = self.config.workers
+        return DataLoader(dataset, batch_sampler=sampler, num_workers=workers,
+                          prefetch_factor=4 if workers else None, persistent_workers=workers > 0)
+
+    def run(self, stop_at: int | None = None) -> None:
+        """Train to ``config.steps``; ``stop_at`` ends early after a checkpoint, as a kill would."""
+        from tqdm import tqdm
+
+        config = self.config
+        if self.rank == 0:
+            self.out.mkdir(parents=True, exist_ok=True)
+            (self.out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2) + "\n")
+        last_checkpoint = time.monotonic()
+        bar = tqdm(total=config.steps, initial=self.step, desc="training", unit="step", disable=not self.progress)
+        iterator = iter(self.loader()) if self.step < config.steps else None
+        window_start, window_steps = time.monotonic(), 0
+        while self.step < config.steps:
+            if stop_at is not None and self.step >= stop_at:
+                self.save()
+                bar.close()
+                return
+            started = time.monotonic()
+            losses = self.train_step(next(iterator))
+            self.elapsed += time.monotonic() - started
+            window_steps += 1
+            bar.update(1)
+            bar.set_postfix(loss=f"{losses['loss']:.4f}")
+            if self.rank == 0 and (self.step % config.log_every == 0 or self.step == config.steps):
+                rate = window_steps / max(1e-9, time.monotonic() - window_start)
+                self.log({"step": self.step, **losses, "lr": self.optimizer.param_groups[0]["lr"],
+                          "steps_per_second": round(rate, 4), "elapsed_seconds": round(self.elapsed, 1)})
+                window_start, window_steps = time.monotonic(), 0
+            if config.validate_every and self.step % config.validate_every == 0 and self.rank == 0:
+                self.validate()
+            if time.monotonic() - last_checkpoint > 60 * config.checkpoint_minutes:
+                self.save()
+                last_checkpoint = time.monotonic()
+        bar.close()
+        self.save(final=True)
+        if self.rank == 0:
+            self.plot_losses()
+        if self.world_size > 1:
+            dist.barrier()
+
+    def log(self, record: dict) -> None:
+        with open(self.out / "train.jsonl", "a") as log:
+            log.write(json.dumps(record) + "\n")
+
+    def plot_losses(self) -> None:
+        from .reporting import plot_training_log
+
+        plot_training_log(self.out / "train.jsonl", self.out / "loss.png")
+
+    def validate(self, count: int = 4) -> None:
+        """Predict fixed held-out procedural materials; log map RMSE and write a sheet."""
+        from .data.procedural import GeneratorConfig, generate
+        from .reporting import validation_sheet
+
+        model = getattr(self.model, "module", self.model)
+        model.eval()
+        maps = torch.stack([generate(10**9 + i, config=GeneratorConfig(size=self.config.size)).to_tensor()
+                            for i in range(count)])
+        batch = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis)
+        with torch.no_grad():
+            output = model(batch.inputs.to(self.device), batch.lights.to(self.device), fov=self.synthesis.fov)
+        predicted = output.maps.cpu()
+        model.train()
+        rmse = ((predicted - maps) ** 2).mean(dim=(0, 2, 3)).sqrt()
+        record = {"step": self.step, "validation_rmse": {"normal": rmse[0:3].mean().item(), "diffuse": rmse[3:6].mean().item(),
+                                                         "roughness": rmse[6].item(), "specular": rmse[7:10].mean().item()}}
+        self.log(record)
+        validation_sheet(batch.photos, predicted, maps, self.out / "validation" / f"step_{self.step:07d}.png")
+        self.plot_losses()
+
+
+def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> Path:
+    """Run (or resume) a training run; returns the final model file."""
+    Trainer(config, resume=resume, progress=progress).run()
+    return Path(config.out) / "model.safetensors"

@@ -1,0 +1,96 @@
+"""Checkpoints: round trip, clear errors for wrong versions and missing tensors, and no unpickling ever."""
+
+from __future__ import annotations
+
+import json
+import pickle
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from mideepbasis import geometry
+from mideepbasis.model.checkpoint import CheckpointError, load_model, read_checkpoint, save_checkpoint
+from mideepbasis.model.network import DeepBasisNet, preset
+
+
+@pytest.fixture
+def saved(tmp_path):
+    torch.manual_seed(3)
+    model = DeepBasisNet(preset("tiny", num_bases=4)).eval()
+    path = save_checkpoint(tmp_path / "m.safetensors", model, metadata={"training": {"data": ["procedural"]}})
+    return model, path
+
+
+def test_round_trip_gives_the_same_network(saved):
+    model, path = saved
+    loaded = load_model(path)
+    assert loaded.config == model.config
+    inputs = torch.rand(1, 9, 32, 32) * 2 - 1
+    lights = geometry.light_positions(torch.zeros(1, 2))
+    with torch.no_grad():
+        assert torch.equal(model(inputs, lights).maps, loaded(inputs, lights).maps)
+    document, _ = read_checkpoint(path)
+    assert document["convention"] == "physical" and document["training"]["data"] == ["procedural"]
+    assert document["network"]["num_bases"] == 4
+
+
+def rewrite(path, target, edit_document=None, drop=None):
+    document, _ = read_checkpoint(path)
+    tensors = load_file(str(path))
+    if edit_document:
+        edit_document(document)
+    if drop:
+        tensors.pop(drop)
+    save_file(tensors, str(target), metadata={"mideepbasis": json.dumps(document)})
+    return target
+
+
+def test_wrong_version_is_a_clear_error(saved, tmp_path):
+    _, path = saved
+    bad = rewrite(path, tmp_path / "v9.safetensors", edit_document=lambda d: d.update(version=9))
+    with pytest.raises(CheckpointError, match=r"v9.safetensors: checkpoint format version 9 is not supported"):
+        load_model(bad)
+
+
+def test_missing_tensor_is_named(saved, tmp_path):
+    _, path = saved
+    name = "model/encoder.convs.0.weight"
+    bad = rewrite(path, tmp_path / "missing.safetensors", drop=name)
+    with pytest.raises(CheckpointError, match=f"tensor {name} is missing"):
+        load_model(bad)
+
+
+def test_shape_mismatch_is_named(saved, tmp_path):
+    _, path = saved
+    bad = rewrite(path, tmp_path / "shape.safetensors", edit_document=lambda d: d["network"].update(num_bases=5))
+    with pytest.raises(CheckpointError, match="has shape"):
+        load_model(bad)
+
+
+class Trap:
+    """Unpickling this would create a file: proof that loading never unpickles."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_a_pickle_is_refused_without_unpickling(tmp_path):
+    marker = tmp_path / "unpickled"
+    bad = tmp_path / "model.safetensors"
+    bad.write_bytes(pickle.dumps({"weights": Trap(str(marker))}))
+    with pytest.raises(CheckpointError, match="not a safetensors checkpoint"):
+        load_model(bad)
+    assert not marker.exists()
+
+
+def test_other_safetensors_files_are_refused(tmp_path):
+    plain = tmp_path / "plain.safetensors"
+    save_file({"x": torch.zeros(2)}, str(plain))
+    with pytest.raises(CheckpointError, match="not a mideepbasis checkpoint"):
+        load_model(plain)
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        load_model(tmp_path / "absent.safetensors")

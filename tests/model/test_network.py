@@ -1,0 +1,109 @@
+"""DeepBasisNet: shapes at any stride multiple, convex blending, the ablation switches, preset sizes."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mideepbasis import geometry
+from mideepbasis.model.nafnet import NAFNet
+from mideepbasis.model.network import (DeepBasisNet, blend, count_parameters, normalize_weights, preset, to_maps,
+                                       to_signed)
+
+
+def run(config, size=64, batch=2, seed=0):
+    torch.manual_seed(seed)
+    net = DeepBasisNet(config).eval()
+    inputs = torch.rand(batch, 9, size, size) * 2 - 1
+    lights = geometry.light_positions(torch.zeros(batch, 2))
+    with torch.no_grad():
+        return net, net(inputs, lights)
+
+
+@pytest.mark.parametrize("size", [32, 64, 96])
+def test_any_multiple_of_the_stride(size):
+    config = preset("tiny")
+    assert config.stride == 16
+    _, out = run(config, size=size)
+    n = config.num_bases
+    assert out.maps.shape == (2, 10, size, size)
+    assert out.weights.shape == (2, n, size, size) and out.global_bases.shape == (2, n, 10)
+    assert out.bases.shape == out.deviations.shape == (2, n, 10, size, size)
+    assert out.error.shape == (2, 3, size, size)
+
+
+def test_size_that_is_not_a_multiple_is_refused():
+    net = DeepBasisNet(preset("tiny"))
+    with pytest.raises(ValueError, match="multiple of the network's stride 16"):
+        net(torch.zeros(1, 9, 40, 40), torch.zeros(1, 3))
+
+
+def test_blend_is_a_convex_combination_of_the_bases():
+    _, out = run(preset("tiny"))
+    weights = out.weights
+    assert weights.min() >= 0
+    assert torch.allclose(weights.sum(1), torch.ones_like(weights[:, 0]), atol=1e-5)
+    signed = out.extras["signed_maps"]
+    assert torch.allclose(signed, blend(weights, out.bases), atol=1e-6)
+    # Every blended parameter lies between the smallest and the largest basis value at its pixel.
+    low, high = out.bases.min(dim=1).values, out.bases.max(dim=1).values
+    assert (signed >= low - 1e-5).all() and (signed <= high + 1e-5).all()
+    # And by hand: two bases, weights 0.25 / 0.75.
+    w = torch.tensor([0.25, 0.75]).view(1, 2, 1, 1)
+    b = torch.tensor([[1.0] * 10, [-1.0] * 10]).view(1, 2, 10)
+    assert torch.allclose(blend(w, b), torch.full((1, 10, 1, 1), -0.5))
+
+
+def test_weight_normalisation_by_hand():
+    raw = torch.tensor([1.0, -1.0, 0.0]).view(1, 3, 1, 1)  # -> 1, 0, 0.5 -> 2/3, 0, 1/3
+    assert normalize_weights(raw).flatten().tolist() == pytest.approx([2 / 3, 0.0, 1 / 3], abs=1e-5)
+
+
+def test_signed_space_round_trip():
+    maps = torch.rand(2, 10, 4, 4)
+    maps[:, :3] = torch.nn.functional.normalize(maps[:, :3] + torch.tensor([0, 0, 1.0]).view(1, 3, 1, 1), dim=1)
+    assert torch.allclose(to_maps(to_signed(maps)), maps, atol=1e-6)
+
+
+@pytest.mark.parametrize("switches,present,absent", [
+    ({"use_local": False}, ["global_bases"], ["bases", "deviations"]),
+    ({"use_global": False}, ["bases", "deviations"], []),
+    ({"use_bases": False}, [], ["weights", "global_bases", "bases"]),
+    ({"num_bases": 3}, ["bases"], []),
+])
+def test_ablations(switches, present, absent):
+    config = preset("tiny", **switches)
+    net, out = run(config)
+    assert out.maps.shape == (2, 10, 64, 64)
+    assert torch.allclose((out.maps[:, :3] ** 2).sum(1), torch.ones(2, 64, 64), atol=1e-4)
+    for name in present:
+        assert getattr(out, name) is not None, name
+    for name in absent:
+        assert getattr(out, name) is None, name
+    if switches.get("use_global") is False:
+        assert torch.equal(out.global_bases, torch.zeros_like(out.global_bases))
+    if "num_bases" in switches:
+        assert out.bases.shape[1] == 3
+    if switches.get("use_bases") is False:
+        assert not hasattr(net, "global_unit") and not hasattr(net, "local_unit")
+
+
+def test_nafnet_constant_planes_equal_the_full_input():
+    torch.manual_seed(0)
+    net = NAFNet(5 + 12, 6, width=4, encoder_blocks=(1, 1), middle_blocks=1, decoder_blocks=(1, 1))
+    x, planes = torch.randn(2, 5, 21, 30), torch.randn(2, 12)
+    full = torch.cat([x, planes[:, :, None, None].expand(-1, -1, 21, 30)], 1)
+    assert torch.allclose(net(full), net(x, planes=planes), atol=1e-5)
+
+
+def test_preset_sizes():
+    compact = count_parameters(DeepBasisNet(preset("compact")))
+    assert compact <= 4_000_000
+    paper = DeepBasisNet(preset("paper"))
+    # The published layout: 8 encoder levels from 64 to 512 channels, an MLP of width 512,
+    # a NAFNet of width 16 with blocks (2, 2, 4, 8), 12 middle blocks and (2, 2, 2, 2).
+    assert [conv.out_channels for conv in paper.encoder.convs] == [64, 128, 256, 512, 512, 512, 512, 512]
+    assert paper.global_unit[0].out_features == 512
+    assert paper.local_unit.intro.out_channels == 16
+    assert [len(e) for e in paper.local_unit.encoders] == [2, 2, 4, 8] and len(paper.local_unit.middle_blks) == 12
+    assert paper.local_unit.intro.in_channels == 9 + 3 + 10 + 100

@@ -1,0 +1,99 @@
+"""Training: the loss falls, the VC loss by hand, exact resume after an interrupt, two processes under torchrun."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from mideepbasis.data.procedural import GeneratorConfig, generate
+from mideepbasis.data.synth import Variation
+from mideepbasis.model.checkpoint import load_model, read_checkpoint
+from mideepbasis.model.network import DeepBasisOutput
+from mideepbasis.train import TrainConfig, Trainer, augment, learning_rate_factor, variation_consistency_loss
+
+
+def tiny_config(tmp_path, **overrides):
+    values = dict(out=str(tmp_path / "run"), preset="tiny", steps=4, batch=2, size=32, workers=0, validate_every=0,
+                  log_every=1, checkpoint_minutes=1e9, lr=3e-3, local_lr=3e-3)
+    values.update(overrides)
+    return TrainConfig(**values)
+
+
+def test_loss_falls_on_a_fixed_batch(tmp_path):
+    trainer = Trainer(tiny_config(tmp_path, steps=60), progress=False)
+    maps = torch.stack([generate(seed, config=GeneratorConfig(size=32)).to_tensor() for seed in range(2)])
+    losses = [trainer.train_step(maps)["loss"] for _ in range(60)]
+    assert sum(losses[-10:]) / 10 < 0.8 * sum(losses[:10]) / 10, losses
+
+
+def test_variation_consistency_loss_by_hand():
+    # One material, one basis, 1x1 pixel. The original prediction's basis, varied by xi, is compared
+    # with the varied prediction's basis; plus the L1 of the varied maps against the varied truth.
+    basis = torch.tensor([0.0, 0.0, 1.0, 0.2, -0.2, 0.0, 0.6, -1.0, -1.0, -1.0]).view(1, 1, 10, 1, 1)
+    varied_basis = torch.zeros(1, 1, 10, 1, 1)
+    variation = Variation(rotation=torch.tensor([0.0]), shift=torch.full((1, 7), 0.5))
+    original = DeepBasisOutput(maps=torch.zeros(1, 10, 1, 1), bases=basis)
+    truth = torch.zeros(1, 10, 1, 1)
+    truth[:, 2] = 1.0  # flat normal, every other map 0 (signed: -1)
+    varied = DeepBasisOutput(maps=truth.clone(), bases=varied_basis, extras={"signed_maps": torch.zeros(1, 10, 1, 1)})
+    loss = variation_consistency_loss(original, varied, variation, truth)
+    # xi on the basis: normal unchanged (rotation 0); others m -> (m + 0.5) / 1.5 in [0, 1] space.
+    expected_basis = [0.0, 0.0, 1.0] + [2 * ((v * 0.5 + 0.5 + 0.5) / 1.5) - 1 for v in (0.2, -0.2, 0.0, 0.6, -1, -1, -1)]
+    consistency = sum(abs(e - 0.0) for e in expected_basis) / 10
+    supervised = (0 + 0 + 1 + 7 * 1) / 10  # signed maps 0 against truth [0, 0, 1, -1 x 7]
+    assert loss.item() == pytest.approx(consistency + supervised, abs=1e-6)
+
+
+def test_learning_rate_decays_by_cosine():
+    assert learning_rate_factor(0, 100, 0.01) == 1.0
+    assert learning_rate_factor(99, 100, 0.01) == pytest.approx(0.01)
+    assert learning_rate_factor(49, 100, 0.0) == pytest.approx(0.5 * (1 + math.cos(math.pi * 49 / 99)))
+
+
+def test_augmentation_keeps_normals_consistent():
+    import numpy as np
+
+    maps = torch.zeros(10, 8, 8)
+    maps[0], maps[2] = 0.6, 0.8  # every normal leans towards +x
+    maps[3:] = torch.linspace(0, 1, 8).view(1, 1, 8)  # brighter to the right (+x)
+    for seed in range(8):
+        out = augment(maps, 8, np.random.default_rng(seed))
+        # The normal must lean towards where the "right" side went: compare with the gradient of diffuse.
+        gy, gx = torch.gradient(out[3])
+        lean = torch.stack([out[0].mean(), out[1].mean()])
+        direction = torch.stack([gx.mean(), -gy.mean()])  # image rows run towards -y
+        assert torch.allclose(lean / lean.norm(), direction / direction.norm(), atol=1e-5), seed
+
+
+def test_resume_after_an_interrupt_gives_the_same_weights(tmp_path):
+    straight = Trainer(tiny_config(tmp_path / "a"), progress=False)
+    straight.run()
+    interrupted = Trainer(tiny_config(tmp_path / "b", steps=4), progress=False)
+    interrupted.run(stop_at=2)  # stop half way, as a kill right after a checkpoint would
+    resumed = Trainer(tiny_config(tmp_path / "b", steps=4), resume=True, progress=False)
+    assert resumed.step == 2
+    resumed.run()
+    a = load_model(tmp_path / "a" / "run" / "model.safetensors").state_dict()
+    b = load_model(tmp_path / "b" / "run" / "model.safetensors").state_dict()
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+    document, _ = read_checkpoint(tmp_path / "b" / "run" / "checkpoint.safetensors")
+    assert document["training_state"]["step"] == 4
+
+
+def test_two_processes_under_torchrun(tmp_path):
+    out = tmp_path / "ddp"
+    environment = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                             "29517", "-m", "mideepbasis.cli", "train", "--preset", "tiny", "--steps", "2", "--batch", "1",
+                             "--size", "32", "--workers", "0", "--validate-every", "0", "--log-every", "1", "--out",
+                             str(out)], capture_output=True, text=True, timeout=600, env=environment)
+    assert result.returncode == 0, result.stderr[-3000:]
+    document, _ = read_checkpoint(out / "model.safetensors")
+    assert document["training"]["world_size"] == 2 and document["training"]["steps_done"] == 2
+    assert (out / "train.jsonl").read_text().count('"loss"') == 2
