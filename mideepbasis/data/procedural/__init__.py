@@ -27,7 +27,7 @@ from ... import constants
 from ...material import Material
 from . import families  # noqa: F401  (registers every family)
 from .core import Canvas, Surface, height_to_normal
-from .layers import mixing_mask, weather
+from .layers import mixing_mask, unevenness, weather
 from .registry import FAMILIES
 
 
@@ -80,6 +80,7 @@ def generate_surface(seed: int, config: GeneratorConfig = GeneratorConfig(),
         mask, kind = mixing_mask(canvas)
         surface = surface.blend(other, mask)
         provenance["mixed_with"] = {"family": other_name, "variant": other.variant, "mask": kind}
+    surface = unevenness(canvas, surface)
     if config.weathering:
         surface, applied = weather(canvas, surface)
         provenance["layers"] = applied

@@ -47,6 +47,13 @@ def hsv_color(hue: float, saturation: float, value: float) -> np.ndarray:
     return srgb_to_linear(colorsys.hsv_to_rgb(hue % 1.0, saturation, value))
 
 
+def planar(color) -> np.ndarray:
+    """A colour (3,) or a grey value as (3, 1, 1), to broadcast over planar (3, H, W) images;
+    a (3, H, W) image passes through."""
+    color = np.asarray(color, np.float32)
+    return color if color.ndim == 3 else np.broadcast_to(color, (3,)).reshape(3, 1, 1)
+
+
 def smoothstep(edge0: float, edge1: float, x: np.ndarray) -> np.ndarray:
     t = np.clip((x - edge0) / (edge1 - edge0), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
@@ -88,9 +95,16 @@ class Surface:
                        specular=self.specular * (1 - m3) + other.specular * m3, variant=self.variant)
 
     def clipped(self) -> "Surface":
-        return Surface(self.height.astype(np.float32), np.clip(self.diffuse, 0, 1).astype(np.float32),
-                       np.clip(self.roughness, 0, 1).astype(np.float32),
-                       np.clip(self.specular, 0, 1).astype(np.float32), self.variant)
+        """Values clipped to [0, 1] and made plausible where blending mixed metal and dielectric:
+        an F0 below 0.1 (a dielectric's) is grey, and where F0 is a metal's the diffuse is dark."""
+        diffuse = np.clip(self.diffuse, 0, 1)
+        specular = np.clip(self.specular, 0, 1)
+        f0 = specular.mean(axis=-1, keepdims=True)
+        specular = np.where(f0 < 0.1, f0, specular)
+        metal = smoothstep(0.3, 0.5, f0)
+        diffuse = diffuse * (1 - metal) + np.minimum(diffuse, 0.04) * metal
+        return Surface(self.height.astype(np.float32), diffuse.astype(np.float32),
+                       np.clip(self.roughness, 0, 1).astype(np.float32), specular.astype(np.float32), self.variant)
 
 
 class Canvas:
@@ -130,6 +144,13 @@ class Canvas:
 
     def choice(self, options):
         return options[int(self.rng.integers(len(options)))]
+
+    def ramp(self) -> np.ndarray | float:
+        """A linear ramp across the sample in a random direction, about [-1, 1]; 0 when tileable."""
+        if self.tileable:
+            return 0.0
+        angle = self.uniform(0, 2 * math.pi)
+        return 2.0 * ((self.u - 0.5) * math.cos(angle) + (self.v - 0.5) * math.sin(angle))
 
     def frequency(self, cycles: float) -> float:
         """A frequency [cycles per sample] that tiles: whole numbers on a tileable canvas."""
@@ -181,6 +202,18 @@ class Canvas:
         return cv2.remap(field.astype(np.float32), map_x.astype(np.float32), map_y.astype(np.float32),
                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
+    def blur(self, field: np.ndarray, sigma: float) -> np.ndarray:
+        """Gaussian blur of ``sigma`` sample widths, wrapping around on a tileable canvas.
+
+        (OpenCV's blur cannot wrap, so a tileable field is padded with its own opposite edges.)
+        """
+        sigma_px = max(sigma * self.size, 1e-3)
+        if not self.tileable:
+            return cv2.GaussianBlur(field, (0, 0), sigma_px, borderType=cv2.BORDER_REFLECT)
+        pad = min(self.size, int(math.ceil(3 * sigma_px)) + 1)
+        padded = cv2.copyMakeBorder(field, pad, pad, pad, pad, cv2.BORDER_WRAP)
+        return cv2.GaussianBlur(padded, (0, 0), sigma_px)[pad:-pad, pad:-pad]
+
     # --- cells ----------------------------------------------------------------------------------
 
     def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -205,7 +238,7 @@ class Canvas:
             xs, ys = pixel[:, 0] + dx * size + margin, pixel[:, 1] + dy * size + margin
             keep = (xs >= 0) & (xs < full) & (ys >= 0) & (ys < full)
             seeds[ys[keep], xs[keep]] = 0
-        distance, labels = cv2.distanceTransformWithLabels(seeds, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+        _, labels = cv2.distanceTransformWithLabels(seeds, cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
                                                            labelType=cv2.DIST_LABEL_PIXEL)
         for dx, dy in shifts:
             xs, ys = pixel[:, 0] + dx * size + margin, pixel[:, 1] + dy * size + margin
@@ -217,7 +250,13 @@ class Canvas:
         border[1:, :][index[1:, :] != index[:-1, :]] = 0
         edge = cv2.distanceTransform(border, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         crop = (slice(margin, margin + size), slice(margin, margin + size))
-        return (distance[crop] / size).astype(np.float32), index[crop], (edge[crop] / size).astype(np.float32)
+        index = index[crop]
+        # The transform's distances are approximate (OpenCV drops the precise mask when labelling)
+        # and its seeds sit on pixel centres; the labels are right, so measure exactly from them.
+        du = self.u - points[index, 0]
+        dv = self.v - points[index, 1]
+        nearest = np.sqrt((du - np.round(du)) ** 2 + (dv - np.round(dv)) ** 2)
+        return nearest.astype(np.float32), index, (edge[crop] / size).astype(np.float32)
 
     def jittered_points(self, cells_per_side: int, jitter: float = 1.0) -> np.ndarray:
         """One random point per cell of a cells x cells grid, (n, 2) in [0, 1)^2."""
@@ -235,17 +274,26 @@ class Canvas:
         return [(dx * self.size, dy * self.size) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
 
     def draw_lines(self, image: np.ndarray, starts: np.ndarray, ends: np.ndarray, values, widths) -> np.ndarray:
-        """Anti-aliased line segments from ``starts`` to ``ends`` ((n, 2) in sample widths, u, v)."""
+        """Anti-aliased line segments from ``starts`` to ``ends`` ((n, 2) in sample widths, u, v),
+        combined with ``image`` by maximum.
+
+        On a tileable canvas each segment is drawn once on a 3 x 3 canvas that is folded back
+        onto the square, so a line crossing an edge continues exactly on the other side.
+        """
+        size = self.size
         shift_bits = 4
-        scale = self.size * (1 << shift_bits)
+        tiles, margin = (3, size) if self.tileable else (1, 0)
+        layer = np.zeros((tiles * size, tiles * size), np.float32)
         values = np.broadcast_to(np.asarray(values, np.float32), (len(starts),))
         widths = np.broadcast_to(np.asarray(widths, np.float32), (len(starts),))
-        for (sx, sy) in self._copies():
-            offset = np.array([sx, sy]) * (1 << shift_bits)
-            for a, b, value, width in zip(starts, ends, values, widths):
-                p0 = tuple(int(x) for x in np.round(a * scale + offset))
-                p1 = tuple(int(x) for x in np.round(b * scale + offset))
-                cv2.line(image, p0, p1, float(value), max(1, int(round(width * self.size))), cv2.LINE_AA, shift_bits)
+        # Pixel j's centre is u = (j + 0.5) / size: pixel coordinate u * size - 0.5.
+        points = lambda p: tuple(int(x) for x in np.round((p * size - 0.5 + margin) * (1 << shift_bits)))  # noqa: E731
+        for a, b, value, width in zip(starts, ends, values, widths):
+            cv2.line(layer, points(a), points(b), float(value), max(1, int(round(width * size))), cv2.LINE_AA,
+                     shift_bits)
+        if self.tileable:
+            layer = layer.reshape(3, size, 3, size).max(axis=(0, 2))
+        np.maximum(image, layer, out=image)
         return image
 
     def draw_text(self, image: np.ndarray, text: str, origin, height: float, value: float, thickness: float,
@@ -262,7 +310,7 @@ class Canvas:
         rotation = cv2.getRotationMatrix2D((weight, h + weight), math.degrees(-angle), 1.0)
         for sx, sy in self._copies():
             matrix = rotation.copy()
-            matrix[:, 2] += [origin[0] * size - weight + sx, origin[1] * size - h - weight + sy]
+            matrix[:, 2] += [origin[0] * size - 0.5 - weight + sx, origin[1] * size - 0.5 - h - weight + sy]
             stamped = cv2.warpAffine(patch, matrix, (size, size), flags=cv2.INTER_LINEAR)
             np.maximum(image, stamped * value, out=image)
         return image

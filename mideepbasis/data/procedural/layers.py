@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from .core import MILLIMETRE, Canvas, Surface, hsv_color, normalized, smoothstep
@@ -37,7 +36,7 @@ def scratches(canvas: Canvas, surface: Surface) -> Surface:
 
 def dirt(canvas: Canvas, surface: Surface) -> Surface:
     """Grime that collects in low places and in patches: darker, browner, rougher, less specular."""
-    blur = cv2.GaussianBlur(surface.height, (0, 0), canvas.size / 64)
+    blur = canvas.blur(surface.height, 1 / 64)
     cavity = normalized(np.maximum(blur - surface.height, 0))
     patches = canvas.blobs(canvas.uniform(2, 8), sharpness=2.0)
     amount = np.clip(canvas.uniform(0.3, 1.0) * cavity + canvas.uniform(0, 0.6) * (patches - 0.4), 0, 1)
@@ -51,7 +50,7 @@ def dirt(canvas: Canvas, surface: Surface) -> Surface:
 
 def wear(canvas: Canvas, surface: Surface) -> Surface:
     """Rubbing on the high points: polished (smoother), paler, slightly flattened."""
-    blur = cv2.GaussianBlur(surface.height, (0, 0), canvas.size / 48)
+    blur = canvas.blur(surface.height, 1 / 48)
     exposed = normalized(np.maximum(surface.height - blur, 0))
     amount = np.clip(exposed * canvas.uniform(0.5, 1.5) * canvas.blobs(canvas.uniform(1, 4)) * 1.5, 0, 1)
     roughness = surface.roughness * (1 - 0.6 * amount)
@@ -98,6 +97,20 @@ def fingerprints(canvas: Canvas, surface: Surface) -> Surface:
     amount *= canvas.uniform(0.3, 0.8)
     roughness = surface.roughness + amount * (0.45 - surface.roughness).clip(0, None)
     return Surface(surface.height, surface.diffuse, roughness, surface.specular, surface.variant)
+
+
+def unevenness(canvas: Canvas, surface: Surface) -> Surface:
+    """A gentle fade of colour and gloss across the sample, as real samples have (batch, wear, sun).
+
+    It also keeps the opposite edges of a plain (non-tileable) material from matching, as they
+    do not in a photograph: noise and cells wrap by construction. None on a tileable canvas.
+    """
+    ramp = canvas.ramp()
+    if canvas.tileable:
+        return surface
+    diffuse = surface.diffuse * (1.0 + canvas.uniform(0.03, 0.1) * canvas.choice([-1.0, 1.0]) * ramp[..., None])
+    roughness = surface.roughness + canvas.uniform(0.01, 0.05) * canvas.choice([-1.0, 1.0]) * ramp
+    return Surface(surface.height, diffuse, roughness, surface.specular, surface.variant)
 
 
 #: The weathering layers and the chance that each is applied to a material.

@@ -1,0 +1,92 @@
+"""Network size and speed: parameters and forward time of each preset, training steps per second.
+
+    .venv/bin/python benchmarks/model.py [--sizes 256 1024] [--train-steps 4] [-o benchmarks/results/model.json]
+
+Forward times are warm medians (inference, no gradients, the error-map render included) on this
+machine's cores; training speed is measured with the real loop (synthesis, both passes of the
+variation-consistency loss, backward, Adam) for the compact preset at the given batch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
+import torch
+
+from mideepbasis import geometry
+from mideepbasis.model.network import DeepBasisNet, count_parameters, preset
+
+RESULTS = Path(__file__).parent / "results"
+TARGETS = {"compact_parameters": 4_000_000, "compact_forward_256_ms": 150.0}
+
+
+def forward_ms(name: str, size: int, repeats: int) -> float:
+    torch.manual_seed(0)
+    model = DeepBasisNet(preset(name)).eval()
+    inputs = torch.rand(1, 9, size, size) * 2 - 1
+    lights = geometry.light_positions(torch.zeros(1, 2))
+    runs = []
+    with torch.no_grad():
+        model(inputs, lights)
+        for _ in range(repeats):
+            start = time.perf_counter()
+            model(inputs, lights)
+            runs.append(1e3 * (time.perf_counter() - start))
+    return round(statistics.median(runs), 1)
+
+
+def training_steps_per_second(size: int, batch: int, steps: int) -> float:
+    from mideepbasis.train import TrainConfig, Trainer
+
+    with tempfile.TemporaryDirectory() as folder:
+        config = TrainConfig(out=folder, preset="compact", steps=steps + 1, batch=batch, size=size, workers=2,
+                             validate_every=0, checkpoint_minutes=1e9)
+        trainer = Trainer(config, progress=False)
+        iterator = iter(trainer.loader())
+        trainer.train_step(next(iterator))  # warm-up: kernels compiled, workers started
+        start = time.perf_counter()
+        for _ in range(steps):
+            trainer.train_step(next(iterator))
+        return round(steps / (time.perf_counter() - start), 4)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[256, 1024])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--train-steps", type=int, default=4)
+    parser.add_argument("--train-batch", type=int, default=8)
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "model.json")
+    args = parser.parse_args()
+
+    presets = {}
+    for name in ("compact", "paper"):
+        presets[name] = {"parameters": count_parameters(DeepBasisNet(preset(name))),
+                         "forward_ms": {str(size): forward_ms(name, size, args.repeats if size <= 256 else 2)
+                                        for size in args.sizes}}
+        print(name, presets[name])
+    training = {f"compact_{size}px_batch{args.train_batch}": training_steps_per_second(size, args.train_batch, args.train_steps)
+                for size in (128, 256)}
+    print("training steps/s:", training)
+    report = {"benchmark": "model", "date": datetime.datetime.now().isoformat(timespec="seconds"),
+              "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+                          "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available()},
+              "targets": TARGETS, "presets": presets, "training_steps_per_second": training}
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    temporary = args.output.with_suffix(".json.tmp")
+    temporary.write_text(json.dumps(report, indent=2) + "\n")
+    temporary.replace(args.output)
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
