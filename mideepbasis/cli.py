@@ -137,6 +137,8 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default=defaults.device)
     parser.add_argument("--out", type=Path, required=True, metavar="runs/NAME")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    parser.add_argument("--init", type=Path, default=None, metavar="MODEL.safetensors",
+                        help="start from these weights (fine-tuning); optimiser and schedule start afresh")
     parser.set_defaults(run=_run_train)
 
 
@@ -153,7 +155,8 @@ def _run_train(args) -> None:
                          steps=args.steps, batch=args.batch, size=args.size, lr=args.lr, local_lr=args.local_lr,
                          vc_weight=args.vc_weight, seed=args.seed, workers=args.workers,
                          checkpoint_minutes=args.checkpoint_minutes, validate_every=args.validate_every,
-                         log_every=args.log_every, device=args.device)
+                         log_every=args.log_every, device=args.device,
+                         init=str(args.init) if args.init else None)
     if not args.resume and (args.out / "checkpoint.safetensors").exists():
         raise InputError(f"{args.out} already holds a run: pass --resume to continue it or choose another --out")
     path = train(config, resume=args.resume)

@@ -98,6 +98,10 @@ class TrainConfig:
     synthesis: dict = field(default_factory=dict)
     """Overrides of the SynthesisConfig fields (noise, exposure, field of view, ...)."""
 
+    init: str | None = None
+    """Start from the weights of this checkpoint (same network configuration), e.g. to fine-tune
+    at a higher resolution; the optimiser and the schedule start afresh."""
+
 
 # --- data --------------------------------------------------------------------------------------
 
@@ -306,6 +310,8 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(config.seed * 1_000_003 + self.rank)
         self.step = 0
         self.elapsed = 0.0
+        if config.init and not resume:
+            self._initialise_from(config.init)
         if resume:
             self._resume()
         if self.world_size > 1:
@@ -313,6 +319,14 @@ class Trainer:
                 self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
 
     # --- checkpoints ---------------------------------------------------------------------------
+
+    def _initialise_from(self, path: str) -> None:
+        from .model.checkpoint import load_model
+
+        source = load_model(path)
+        if source.config != self.model.config:
+            raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} preset)")
+        self.model.load_state_dict(source.state_dict())
 
     def _resume(self) -> None:
         path = self.out / "checkpoint.safetensors"
