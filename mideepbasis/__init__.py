@@ -2,9 +2,10 @@
 
 Public API::
 
-    from mideepbasis import Material, render_material, render_flash
+    from mideepbasis import Material, load_model, render_material
     material = Material.load("my_material/")
     image = render_material(material, light="env")          # (H, W, 3) linear, path traced
+    model = load_model()                                    # the shipped DeepBasisNet
 
 Rendering imports drjit and Mitsuba on first use (``mideepbasis.render``), not at import.
 """
@@ -25,9 +26,11 @@ from .material import Material, MaterialError  # noqa: E402
 __version__ = "0.1.0"
 
 __all__ = ["Material", "MaterialError", "ImageIOError", "InputError", "MideepbasisError", "read_image",
-           "write_image", "render_material", "render_flash", "__version__"]
+           "write_image", "render_material", "render_flash", "load_model", "__version__"]
 
-_RENDERING = {"render_material": "mideepbasis.render.api", "render_flash": "mideepbasis.render"}
+# Loaded on first use: these import drjit and Mitsuba, which take a moment to start.
+_RENDERING = {"render_material": "mideepbasis.render.api", "render_flash": "mideepbasis.render",
+              "load_model": "mideepbasis.model.checkpoint"}
 
 
 def __getattr__(name):

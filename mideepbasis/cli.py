@@ -1,5 +1,7 @@
 """The ``mideepbasis`` command. Thin: parse arguments, call the library, print one line per error.
 
+    mideepbasis capture PHOTO [PHOTO ...] -o OUT [--fov DEG] [--light TX,TY] [--refine-steps 500]
+                        [--resolution N|native] [--model PATH] [--exr] [--overwrite]
     mideepbasis render MATERIAL_DIR -o OUT.exr [--light flash|env] [--fov 45] [--offset TX,TY]
                        [--spp N] [--convention physical|deepbasis] [--env studio|sunsky|FILE]
     mideepbasis demo [-o OUT_DIR]
@@ -69,20 +71,123 @@ def _run_render(args) -> None:
     print(f"wrote {exr} and {png}")
 
 
+def _resolution(text: str) -> int | str:
+    if text == "native":
+        return text
+    value = _positive_int(text)
+    if value < 64:
+        raise argparse.ArgumentTypeError(f"resolution must be at least 64 pixels, got {value}")
+    return value
+
+
+#: Photo suffixes a folder given to ``capture`` is searched for.
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".exr")
+
+
+def _add_capture(subparsers) -> None:
+    from .capture import CaptureConfig
+
+    defaults = CaptureConfig()
+    parser = subparsers.add_parser(
+        "capture", help="capture materials from flash photos",
+        description="Photo to material: lighting search, DeepBasis prediction, refinement of the global bases. "
+                    "One photo writes the material folder into OUT; several (or a folder) write OUT/<photo name>/ each.")
+    parser.add_argument("photos", type=Path, nargs="+", metavar="PHOTO", help="JPEG, PNG or EXR flash photos, or folders of them")
+    parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
+    parser.add_argument("--fov", type=float, default=None, help="field of view of the photo's width [deg] (default: EXIF, else 45)")
+    parser.add_argument("--light", type=_offset, default=None, metavar="TX,TY",
+                        help="known flash offset [patch half-widths]: skips the lighting search")
+    parser.add_argument("--refine-steps", type=int, default=defaults.refine_steps, help="0 turns refinement off")
+    parser.add_argument("--resolution", type=_resolution, default=defaults.resolution, metavar="N|native",
+                        help="working resolution [pixels], or native (up to 2048)")
+    parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
+    parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
+    parser.set_defaults(run=_run_capture)
+
+
+def _photos(paths: list[Path]) -> list[Path]:
+    photos = []
+    for path in paths:
+        if path.is_dir():
+            photos += sorted(p for p in path.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES and p.is_file())
+        else:
+            photos.append(path)
+    return photos
+
+
+def _run_capture(args) -> int:
+    from tqdm import tqdm
+
+    from .capture import CaptureConfig, capture
+    from .export import check_output, save_capture
+    from .model.checkpoint import load_model
+
+    photos = _photos(args.photos)
+    if not photos:
+        raise InputError(f"no photos ({', '.join(PHOTO_SUFFIXES)}) in {', '.join(str(p) for p in args.photos)}")
+    single = len(photos) == 1
+    check_output(args.output, args.overwrite)
+    model = load_model(args.model)
+    config = CaptureConfig(fov=args.fov, light=args.light, refine_steps=args.refine_steps, resolution=args.resolution)
+    failures = []
+    for photo in tqdm(photos, desc="capturing", unit="photo", disable=single):
+        target = args.output if single else args.output / photo.stem
+        try:
+            result = capture(photo, model=model, config=config, progress=single)
+            save_capture(result, target, exr=args.exr, overwrite=args.overwrite or not single, progress=single)
+        except MideepbasisError as error:
+            if single:
+                raise
+            failures.append((photo, str(error)))
+            tqdm.write(f"mideepbasis: skipped {photo}: {error}")
+            continue
+        for note in result.notes:
+            tqdm.write(f"mideepbasis: note: {photo.name}: {note}")
+        tqdm.write(f"{photo.name}: flash offset {result.offset_angle_deg:.1f} deg, "
+                   f"{sum(result.timings.values()):.1f} s -> {target}")
+    if not single:
+        print(f"captured {len(photos) - len(failures)} of {len(photos)} photos into {args.output}"
+              + (f"; {len(failures)} failed" if failures else ""))
+    return 1 if failures else 0
+
+
 def _add_demo(subparsers) -> None:
-    parser = subparsers.add_parser("demo", help="render the bundled example material under the flash and the studio")
+    parser = subparsers.add_parser(
+        "demo", help="capture the bundled example photo and compare with its ground truth",
+        description="Runs `capture` on a flash photo that ships with the package (rendered from a procedural "
+                    "material with a hand-held offset) and prints the error against its ground truth.")
     parser.add_argument("-o", "--output", type=Path, default=Path("demo"), metavar="OUT_DIR")
+    parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.set_defaults(run=_run_demo)
 
 
 def _run_demo(args) -> None:
-    from .material import Material
-    from .render.api import example_material_dir, render_material, write_render
+    import json
 
-    material = Material.load(example_material_dir())
-    for light, name in (("flash", "flash"), ("env", "studio")):
-        exr, png = write_render(render_material(material, light=light), args.output / f"{name}.exr")
-        print(f"wrote {exr} and {png}")
+    import torch
+
+    from .capture import capture
+    from .evaluate import light_error_deg, map_rmse
+    from .export import save_capture
+    from .material import Material
+    from .render.api import example_capture_dir
+
+    folder = example_capture_dir()
+    truth_light = json.loads((folder / "truth.json").read_text())
+    result = capture(folder / "photo.jpg", model=args.model, progress=True)
+    save_capture(result, args.output, overwrite=True, progress=True)
+    for note in result.notes:
+        print(f"note: {note}")
+    truth = Material.load(folder / "truth").to_tensor()[None]
+    truth = torch.nn.functional.interpolate(truth, size=result.material.width, mode="area")
+    truth[:, :3] = torch.nn.functional.normalize(truth[:, :3], dim=1)
+    errors = {name: float(value[0]) for name, value in map_rmse(result.material.to_tensor()[None], truth).items()}
+    light_error = light_error_deg(result.offset, truth_light["offset"], result.fov)
+    print(f"captured {folder / 'photo.jpg'} into {args.output} in {sum(result.timings.values()):.1f} s")
+    print(f"flash: found {result.offset_angle_deg:.1f} deg off centre, true offset off by {light_error:.2f} deg")
+    print("map RMSE against the ground truth: " + ", ".join(f"{k} {v:.3f}" for k, v in errors.items()))
+    print(f"open {args.output / 'report.html'} to see the maps, the re-rendering and the environment rendering")
 
 
 def _add_data(subparsers) -> None:
@@ -167,6 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mideepbasis", description="SVBRDF capture from one hand-held flash photo.")
     subparsers = parser.add_subparsers(dest="command", required=True)
     _add_render(subparsers)
+    _add_capture(subparsers)
     _add_demo(subparsers)
     _add_data(subparsers)
     _add_train(subparsers)
@@ -177,14 +283,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     warnings.formatwarning = lambda message, category, *rest: f"mideepbasis: warning: {message}\n"
     try:
-        args.run(args)
+        status = args.run(args)
     except (MideepbasisError, FileNotFoundError) as error:
         print(f"mideepbasis: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("mideepbasis: interrupted", file=sys.stderr)
         return 130
-    return 0
+    return status or 0
 
 
 if __name__ == "__main__":

@@ -33,7 +33,8 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     import colour
 
-__all__ = ["ImageIOError", "read_image", "write_image", "write_bytes", "srgb_to_linear", "linear_to_srgb"]
+__all__ = ["ImageIOError", "read_image", "write_image", "write_bytes", "srgb_to_linear", "linear_to_srgb",
+           "read_focal_length_35mm"]
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _JPEG_MAGIC = b"\xff\xd8\xff"
@@ -230,6 +231,37 @@ def _exif_orientation(get_exif: Callable[[], Image.Exif]) -> int:
     except Exception:  # noqa: BLE001 - any EXIF parsing failure means "no orientation"
         return 1
     return orientation if 1 <= orientation <= 8 else 1
+
+
+#: EXIF tags: the Exif sub-IFD pointer and the 35 mm-equivalent focal length in it.
+_EXIF_IFD = 0x8769
+_EXIF_FOCAL_35MM = 0xA405
+
+
+def read_focal_length_35mm(path: str | os.PathLike) -> tuple[float | None, str | None]:
+    """The EXIF 35 mm-equivalent focal length [mm] of a JPEG/PNG, and a note when EXIF is unreadable.
+
+    Returns:
+        (focal length or None when absent, None or a one-line note such as
+        "the EXIF block could not be parsed and was ignored").
+    """
+    path = Path(path)
+    broken = f"the EXIF block of '{path.name}' could not be parsed and was ignored"
+    try:
+        # Pillow reports some damage only as a warning ("Corrupt EXIF data"): catch those too.
+        with warnings.catch_warnings(record=True) as caught, Image.open(path) as img:
+            warnings.simplefilter("always")
+            exif = img.getexif()
+            focal = exif.get_ifd(_EXIF_IFD).get(_EXIF_FOCAL_35MM) or exif.get(_EXIF_FOCAL_35MM)
+    except Exception:  # noqa: BLE001 - a broken EXIF block must never stop a capture
+        return None, broken
+    if any("exif" in str(w.message).lower() for w in caught):
+        return None, broken
+    try:
+        focal = float(focal) if focal else None
+    except (TypeError, ValueError):
+        return None, f"the EXIF focal length of '{path.name}' is not a number and was ignored"
+    return (focal if focal and focal > 0 else None), None
 
 
 def _orient(image: np.ndarray, orientation: int) -> np.ndarray:

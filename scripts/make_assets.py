@@ -1,10 +1,11 @@
-"""Make the files the project ships: the studio HDR environment, the default flat textures and
-the example material.
+"""Make the files the project ships: the studio HDR environment, the default flat textures, the
+example material and the example capture (a flash photo with its ground truth).
 
     .venv/bin/python scripts/make_assets.py
 
 Everything is computed here from closed-form formulas, so the shipped files are our own and
-can be rebuilt bit for bit. Writes into scenes/envmaps/, scenes/textures/ and mideepbasis/assets/example_material/.
+can be rebuilt bit for bit. Writes into scenes/envmaps/, scenes/textures/, mideepbasis/assets/example_material/ and
+mideepbasis/assets/example_capture/.
 """
 
 from __future__ import annotations
@@ -99,6 +100,49 @@ def glazed_tiles(size: int = 256, tiles: int = 4, seed: int = 2023) -> Material:
                     provenance={"source": "scripts/make_assets.py glazed_tiles", "seed": seed})
 
 
+#: The example capture: a procedural material (a seed far from any training stream's), photographed
+#: hand-held with a phone-like lens, as a 512 x 512 JPEG with its EXIF focal length.
+EXAMPLE_CAPTURE = {"seed": 9_000_019, "family": "stone", "offset_deg": (6.0, -4.0), "focal_35mm": 37.0, "size": 512}
+
+
+def example_capture(folder: Path) -> None:
+    """Render the example flash photo and store it with its ground truth (material and light)."""
+    import json
+    import math
+
+    import torch
+    from PIL import Image
+
+    from mideepbasis import geometry
+    from mideepbasis.capture import field_of_view_from_focal
+    from mideepbasis.data.procedural import generate
+    from mideepbasis.data.synth import SynthesisConfig, simulate_photo
+    from mideepbasis.imageio import linear_to_srgb
+    from mideepbasis.render import render_flash
+
+    spec = EXAMPLE_CAPTURE
+    size = spec["size"]
+    material = generate(spec["seed"], size=size, family=spec["family"])
+    fov = field_of_view_from_focal(spec["focal_35mm"], size, size)
+    height = geometry.constants.camera_height(fov)
+    offset = [height * math.tan(math.radians(a)) for a in spec["offset_deg"]]
+    light = geometry.light_positions(torch.tensor([offset]), fov)
+    with torch.no_grad():
+        radiance = render_flash(material.to_tensor()[None], light.view(1, 1, 3), fov=fov)[:, 0]
+    photo = simulate_photo(radiance, torch.Generator().manual_seed(spec["seed"]), SynthesisConfig(),
+                           gains=torch.ones(1, 3))[0]
+    pixels = np.round(linear_to_srgb(photo.permute(1, 2, 0).numpy()) * 255).astype(np.uint8)
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0xA405] = int(spec["focal_35mm"])  # FocalLengthIn35mmFilm
+    folder.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(pixels).save(folder / "photo.jpg", quality=92, exif=exif)
+    material.save(folder / "truth", format="png")
+    truth = {"offset": offset, "offset_deg": list(spec["offset_deg"]), "fov_deg": fov, "seed": spec["seed"],
+             "family": spec["family"], "focal_35mm": spec["focal_35mm"],
+             "note": "rendered by scripts/make_assets.py: physical convention, 8-bit sRGB JPEG with camera noise"}
+    (folder / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+
+
 def main() -> None:
     envmaps = ROOT / "scenes" / "envmaps"
     textures = ROOT / "scenes" / "textures"
@@ -109,7 +153,8 @@ def main() -> None:
         write_image(textures / name, np.broadcast_to(np.asarray(value, np.float32), (2, 2, len(value))).copy())
     example = ROOT / "mideepbasis" / "assets" / "example_material"
     glazed_tiles().save(example, format="png")
-    print(f"wrote {envmaps}, {textures} and {example}")
+    example_capture(ROOT / "mideepbasis" / "assets" / "example_capture")
+    print(f"wrote {envmaps}, {textures}, {example} and the example capture")
 
 
 if __name__ == "__main__":

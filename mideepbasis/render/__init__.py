@@ -118,7 +118,7 @@ from . import bsdf  # noqa: E402  (registers the plugin once the variant is set)
 
 
 def render_flash(maps, lights, *, fov: float | None = None, convention: str | None = None,
-                 intensity: float | None = None, backend: str = "mitsuba"):
+                 intensity: float | None = None, backend: str = "mitsuba", views=None):
     """The flash renderer every part of the pipeline calls: per pixel, batched, differentiable.
 
     Args:
@@ -129,6 +129,8 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
         intensity: radiant intensity [W/sr]; default ``geometry.flash_intensity(fov, convention)``.
         backend: ``mitsuba`` (the ``svbrdf`` plugin through the bridge) or ``torch`` (the
             independent reference, for cross-checks).
+        views: (B, K, 3) viewpoints apart from the lights (re-rendering metrics), or None: the
+            camera sits at the light, as in a flash capture.
 
     Returns:
         linear radiance, (B, K, 3, H, W).
@@ -142,4 +144,4 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
     renderers = {"mitsuba": bridge.render_flash, "torch": reference.render_flash}
     if backend not in renderers:
         raise ValueError(f"unknown render backend {backend!r}; expected one of {sorted(renderers)}")
-    return renderers[backend](maps, lights, intensity, convention)
+    return renderers[backend](maps, lights, intensity, convention, views=views)

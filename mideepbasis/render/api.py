@@ -20,6 +20,11 @@ def example_material_dir() -> Path:
     return Path(str(resources.files("mideepbasis") / "assets" / EXAMPLE_MATERIAL))
 
 
+def example_capture_dir() -> Path:
+    """Folder of the bundled example capture: ``photo.jpg``, ``truth/`` (its material) and ``truth.json``."""
+    return Path(str(resources.files("mideepbasis") / "assets" / "example_capture"))
+
+
 def _resized(maps: torch.Tensor, resolution: int | None) -> torch.Tensor:
     """(10, H, W) maps resampled to resolution x resolution (normals renormalised)."""
     if resolution is None or tuple(maps.shape[-2:]) == (resolution, resolution):

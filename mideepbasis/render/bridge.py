@@ -27,12 +27,13 @@ def flash_renderer(convention: str) -> FlashRenderer:
 
 
 @dr.wrap(source="torch", target="drjit")
-def _render_flash_drjit(normal, diffuse, roughness, specular, lights, intensity, batch, convention):
+def _render_flash_drjit(normal, diffuse, roughness, specular, lights, views, intensity, batch, convention):
     renderer = flash_renderer(convention)
     renderer.set_maps(normal, diffuse, roughness, specular)
     height, width = normal.shape[0] // batch, normal.shape[1]
     positions = dr.unravel(mi.Point3f, lights.array)
-    return renderer.render(positions, batch, height, width, mi.Float(intensity.array))
+    viewpoints = None if views is None else dr.unravel(mi.Point3f, views.array)
+    return renderer.render(positions, batch, height, width, mi.Float(intensity.array), viewpoints)
 
 
 def _to_texture(maps: torch.Tensor) -> torch.Tensor:
@@ -42,12 +43,13 @@ def _to_texture(maps: torch.Tensor) -> torch.Tensor:
 
 
 def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
-                 convention: str = constants.DEFAULT_CONVENTION) -> torch.Tensor:
+                 convention: str = constants.DEFAULT_CONVENTION, views: torch.Tensor | None = None) -> torch.Tensor:
     """Per-pixel flash render through the Mitsuba ``svbrdf`` plugin, differentiable in torch.
 
     Args:
         maps: (B, 10, H, W) float32 stacked [normal 3, diffuse 3, roughness 1, specular 3].
         lights: (B, K, 3) camera and flash positions [patch half-widths].
+        views: (B, K, 3) viewpoints apart from the lights, or None (co-located).
         intensity: radiant intensity [W/sr] (``physical``) or lamp intensity (``deepbasis``).
         convention: ``physical`` or ``deepbasis``.
 
@@ -61,7 +63,8 @@ def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
     batch, n_lights = lights.shape[:2]
     normal, diffuse, roughness, specular = torch.split(maps.float(), [3, 3, 1, 3], dim=1)
     # The light tensor is always handed over so that its gradient exists whenever asked for.
+    flat_views = None if views is None else views.float().reshape(batch * n_lights, 3)
     image = _render_flash_drjit(_to_texture(normal), _to_texture(diffuse), _to_texture(roughness),
-                                _to_texture(specular), lights.float().reshape(batch * n_lights, 3),
+                                _to_texture(specular), lights.float().reshape(batch * n_lights, 3), flat_views,
                                 torch.tensor([float(intensity)], device=maps.device), batch, convention)
     return image.permute(0, 1, 4, 2, 3).to(maps.dtype)

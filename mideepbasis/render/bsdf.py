@@ -4,6 +4,8 @@ Parameters (XML or ``mi.load_dict``):
 
 ``normal``     texture, normal-mapped normal in the local tangent frame, components in
                [-1, 1] (a raw bitmap); default (0, 0, 1)
+``normal_encoding`` string, ``signed`` (default: components as stored) or ``unsigned``
+               (stored as (n + 1) / 2, as in PNG normal maps: decoded as 2 x - 1)
 ``diffuse``    texture, diffuse albedo [0, 1], linear; default 0.5
 ``roughness``  texture, roughness [0, 1] (alpha = r^2); default 0.5
 ``specular``   texture, specular albedo F0 [0, 1], linear; default 0.04
@@ -46,6 +48,9 @@ class SVBRDF(mi.BSDF):
     def __init__(self, props: mi.Properties):
         mi.BSDF.__init__(self, props)
         self.convention = props.get("convention", constants.DEFAULT_CONVENTION)
+        self.unsigned_normals = props.get("normal_encoding", "signed") == "unsigned"
+        if props.get("normal_encoding", "signed") not in ("signed", "unsigned"):
+            raise ValueError(f"svbrdf: normal_encoding must be 'signed' or 'unsigned', got {props.get('normal_encoding')!r}")
         if self.convention not in constants.CONVENTIONS:
             raise ValueError(f"svbrdf: unknown convention {self.convention!r}; "
                              f"expected one of {constants.CONVENTIONS}")
@@ -62,6 +67,8 @@ class SVBRDF(mi.BSDF):
     def maps(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True):
         """Evaluate the four maps at ``si.uv``: (unit normal, diffuse, roughness, specular)."""
         normal = mi.Vector3f(self.textures["normal"].eval(si, active))
+        if self.unsigned_normals:
+            normal = dr.fma(normal, 2.0, -1.0)
         normal = dr.normalize(normal)
         diffuse = self.textures["diffuse"].eval(si, active)
         roughness = self.textures["roughness"].eval_1(si, active)
@@ -128,7 +135,8 @@ class SVBRDF(mi.BSDF):
         pass
 
     def to_string(self):
-        return f"SVBRDF[convention={self.convention!r}]"
+        encoding = "unsigned" if self.unsigned_normals else "signed"
+        return f"SVBRDF[convention={self.convention!r}, normal_encoding={encoding!r}]"
 
 
 mi.register_bsdf("svbrdf", lambda props: SVBRDF(props))

@@ -51,12 +51,13 @@ class FlashRenderer:
         self.params.update()
 
     def render(self, lights: mi.Point3f, batch: int, height: int, width: int,
-               intensity: float | mi.Float) -> mi.TensorXf:
+               intensity: float | mi.Float, views: mi.Point3f | None = None) -> mi.TensorXf:
         """Render every loaded material under its lights.
 
         Args:
-            lights: B*K co-located camera and flash positions [patch half-widths], light k of
-                material b at index b*K + k.
+            lights: B*K flash positions [patch half-widths], light k of material b at index b*K + k.
+            views: B*K viewpoints (one per light) for re-renderings where camera and light are
+                apart; None: co-located with the lights (the flash capture).
             batch: number B of stacked materials; the loaded maps have B*height rows.
             height, width: image size h, w [pixels].
             intensity: radiant intensity of the flash [W/sr] (``physical``) or lamp intensity
@@ -82,11 +83,12 @@ class FlashRenderer:
                            1.0 - dr.fma(2.0, row_f, 1.0) / height, 0.0)
         to_light = dr.gather(mi.Point3f, lights, light_index) - point
         direction = dr.normalize(to_light)
+        to_view = direction if views is None else dr.normalize(dr.gather(mi.Point3f, views, light_index) - point)
 
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.p = point
         si.uv = mi.Point2f((col_f + 0.5) / width, (mi.Float(material * height + row) + 0.5) / (batch * height))
-        si.wi = direction
+        si.wi = to_view
         value = self.bsdf.eval(mi.BSDFContext(), si, direction)
         radiance = value * shading.flash_factor(self.convention, to_light, intensity)
         return mi.TensorXf(dr.ravel(radiance), shape=(batch, per_material, height, width, 3))

@@ -77,12 +77,13 @@ def eval_cosine(convention: str, normal: torch.Tensor, wi: torch.Tensor, wo: tor
 
 
 def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
-                 convention: str = constants.DEFAULT_CONVENTION) -> torch.Tensor:
+                 convention: str = constants.DEFAULT_CONVENTION, views: torch.Tensor | None = None) -> torch.Tensor:
     """Per-pixel flash render of a batch of materials under co-located camera and flash.
 
     Args:
         maps: (B, 10, H, W) stacked [normal 3, diffuse 3, roughness 1, specular 3].
         lights: (B, K, 3) camera and flash positions [patch half-widths].
+        views: (B, K, 3) viewpoints apart from the lights, or None (co-located).
         intensity: radiant intensity [W/sr] (``physical``) or lamp intensity (``deepbasis``).
         convention: ``physical`` or ``deepbasis``.
 
@@ -95,7 +96,8 @@ def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
     to_light = lights[..., :, None, None] - points  # (B, K, 3, H, W)
     distance2 = (to_light**2).sum(dim=-3, keepdim=True)
     direction = to_light / torch.sqrt(distance2)
-    value = eval_cosine(convention, normal, direction, direction, diffuse, roughness, specular)
+    to_view = direction if views is None else _normalize(views[..., :, None, None] - points)
+    value = eval_cosine(convention, normal, to_view, direction, diffuse, roughness, specular)
     if convention == "deepbasis":
         return value * (math.pi * intensity)
     return value * intensity / distance2

@@ -1,0 +1,84 @@
+"""Quality of a trained model on the 84 shared test materials, beside the trivial baseline.
+
+    .venv/bin/python benchmarks/model_quality.py [--model PATH] [-o benchmarks/results/model_quality.json]
+
+Inputs are rendered from the ground-truth maps (used as stored) under the centred flash with the
+model's shading convention and quantised to 8-bit sRGB; the model predicts the maps at 256x256.
+Reported: map RMSE of normal, diffuse, roughness and specular in the stored encoding, and the RMSE
+of re-renderings under 30 seeded random lights and views per material (clipped, sRGB-encoded),
+for the model and for the trivial baseline (flat normal and the set's mean maps). The paper's
+DeepBasis row (on its 122 scenes) is listed for reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import time
+from pathlib import Path
+
+import mideepbasis  # noqa: F401
+import torch
+
+from mideepbasis.capture import predict
+from mideepbasis.data.datasets import DeschaintreDataset
+from mideepbasis.evaluate import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
+from mideepbasis.model.checkpoint import load_model, shipped_model_path
+
+RESULTS = Path(__file__).parent / "results"
+SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
+PAPER = {"normal": 0.053, "diffuse": 0.031, "roughness": 0.162, "specular": 0.043}
+TRIVIAL_QUOTED = {"normal": 0.074, "diffuse": 0.061, "roughness": 0.173, "specular": 0.040}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
+    parser.add_argument("--data", type=Path, default=SHARED_TEST)
+    parser.add_argument("--batch", type=int, default=6)
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "model_quality.json")
+    args = parser.parse_args()
+
+    if not args.data.is_dir():
+        raise SystemExit(f"shared test data not found at {args.data}")
+    model = load_model(args.model)
+    convention = model.config.convention
+    reader = DeschaintreDataset(args.data)
+    materials = torch.stack([m.to_tensor() for m in reader])
+    names = [Path(s).stem for s in reader.sources]
+    lights, views = random_lights_and_views(seed=0)
+    start = time.perf_counter()
+    predictions = []
+    for first in range(0, len(materials), args.batch):
+        truth = materials[first:first + args.batch]
+        photos, flash = flash_photos(truth, torch.zeros(len(truth), 2), convention=convention)
+        predictions.append(predict(model, photos, flash).maps.cpu())
+    predicted = torch.cat(predictions)
+    seconds = time.perf_counter() - start
+    baseline = trivial_baseline(materials).expand_as(materials)
+
+    rows = {}
+    for name, estimate in (("model", predicted), ("trivial", baseline)):
+        maps = map_rmse(estimate, materials)
+        render = torch.cat([rerender_rmse(estimate[i:i + 6], materials[i:i + 6], lights, views, convention)
+                            for i in range(0, len(materials), 6)])
+        rows[name] = {**{k: round(float(v.mean()), 4) for k, v in maps.items()}, "render_rmse": round(float(render.mean()), 4)}
+    report = {"benchmark": "model_quality", "date": datetime.datetime.now().isoformat(timespec="seconds"),
+              "model": str(args.model or shipped_model_path()), "convention": convention, "materials": len(materials),
+              "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
+              "prediction_seconds": round(seconds, 1), "rows": rows, "paper_deepbasis_122_scenes": PAPER,
+              "trivial_quoted_in_issue": TRIVIAL_QUOTED, "per_material_names": names}
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    temporary = args.output.with_suffix(".json.tmp")
+    temporary.write_text(json.dumps(report, indent=2) + "\n")
+    temporary.replace(args.output)
+    print(f"{'':10s} {'normal':>8s} {'diffuse':>8s} {'rough':>8s} {'specular':>8s} {'render':>8s}")
+    for name, row in rows.items():
+        print(f"{name:10s} " + " ".join(f"{row[k]:8.4f}" for k in ("normal", "diffuse", "roughness", "specular", "render_rmse")))
+    print(f"{'paper':10s} " + " ".join(f"{PAPER[k]:8.4f}" for k in ("normal", "diffuse", "roughness", "specular")))
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,440 @@
+"""Photo to material: load the photo, find the flash, predict the bases, refine the global bases.
+
+    from mideepbasis import capture
+    result = capture("flash_photo.jpg")                   # a CaptureResult
+    result.material.save("out/")
+
+Stages (DESIGN section 1):
+
+1. **Photo.** JPEG, PNG (8/16-bit) or EXR; EXIF orientation applied; sRGB decoded to linear; the
+   centre square cropped; resampled to the working resolution (256 by default, or the photo's
+   own up to 2048 with ``resolution="native"``). The field of view comes from the EXIF
+   35 mm-equivalent focal length when present, else ``fov``, else 45 degrees.
+2. **Lighting search.** The flash position is unknown in a hand-held shot. Starting from the
+   centred flash, each pass predicts the material with the current light (one network pass) and
+   then, holding that material fixed, renders it under every candidate light within delta =
+   16.33 deg (batched through the Mitsuba plugin) and moves to the candidate whose rendering
+   matches the photo best; it stops when the light no longer moves. A final local search on a
+   finer grid needs no network pass.
+3. **Prediction** with the found light: weights, global bases, local deviations.
+4. **Refinement.** Only the N global bases move: Adam on the L1 difference between the photo and
+   the rendering of the blended material (rendered through the plugin, gradients through the
+   bridge); weights and local deviations stay fixed. It runs on a downsampled copy (the global
+   bases are a few numbers; the photo's large-scale appearance determines them).
+
+Shapes: photos (B, 3, H, W) linear in [0, 1]; lights (B, 3) flash positions and offsets (B, 2)
+[patch half-widths].
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import constants, geometry
+from .data.synth import lighting_mark, network_input
+from .errors import InputError
+from .imageio import read_focal_length_35mm, read_image
+from .material import Material
+from .model.network import DeepBasisNet, DeepBasisOutput, blend, normalize_basis_normals, to_maps
+
+#: Smallest photo side accepted [pixels].
+MIN_PHOTO_SIZE = 64
+
+#: Largest working resolution of ``resolution="native"`` [pixels].
+MAX_NATIVE_RESOLUTION = 2048
+
+#: Diagonal of a 35 mm film frame [mm]: EXIF 35 mm-equivalent focal lengths match its field of view.
+FILM_DIAGONAL_MM = math.hypot(36.0, 24.0)
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    """How a photo becomes a material."""
+
+    fov: float | None = None
+    """Field of view of the photo's width [deg]; None: from EXIF, else 45."""
+
+    light: tuple[float, float] | None = None
+    """Known flash offset (tx, ty) [patch half-widths]; None: search for it."""
+
+    resolution: int | str = constants.DEFAULT_RESOLUTION
+    """Working resolution [pixels], or ``native`` (the photo's own, up to 2048)."""
+
+    refine_steps: int = 500
+    """Adam steps refining the global bases; 0 turns refinement off."""
+
+    refine_resolution: int = 64
+    """Resolution of the refinement's renders [pixels]."""
+
+    refine_lr: float = 0.01
+    """Adam learning rate of the refinement [signed-space units per step]."""
+
+    search_grid: int = 21
+    """Candidates per side of the lighting search's square grid over the offsets within delta."""
+
+    search_resolution: int = 128
+    """Resolution of the lighting search's candidate renders [pixels]."""
+
+    search_passes: int = 6
+    """Most network passes of the lighting search."""
+
+    max_offset_deg: float = constants.MAX_OFFSET_DEG
+    """Largest hand-held offset searched [deg] (delta)."""
+
+
+@dataclass
+class CaptureResult:
+    """A capture: the material and everything measured on the way."""
+
+    material: Material
+    """The captured maps."""
+
+    photo: torch.Tensor
+    """(3, H, W) the working photo, linear."""
+
+    offset: tuple[float, float]
+    """The flash offset (tx, ty) used [patch half-widths]."""
+
+    fov: float
+    """Field of view [deg]."""
+
+    fov_source: str
+    """Where the field of view came from: ``exif``, ``argument`` or ``default``."""
+
+    searched: bool
+    """Whether the offset was searched for (else it was given)."""
+
+    search_history: list[dict] = field(default_factory=list)
+    """The lighting search's passes: offset [patch half-widths] and objective (mean L1) each."""
+
+    refinement_losses: list[float] = field(default_factory=list)
+    """The refinement's loss at every step."""
+
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds per stage."""
+
+    notes: list[str] = field(default_factory=list)
+    """What the user should know (a crop, the field of view's source, a dark photo)."""
+
+    output: DeepBasisOutput | None = None
+    """The network's prediction (weights, bases, ...), refined global bases included."""
+
+    @property
+    def offset_angle_deg(self) -> float:
+        """Angle of the flash offset seen from the sample centre [deg]."""
+        return float(geometry.offset_angle_deg(torch.tensor(self.offset), self.fov))
+
+    @property
+    def light_position(self) -> torch.Tensor:
+        """(3,) the flash position [patch half-widths]."""
+        return geometry.light_positions(torch.tensor(self.offset, dtype=torch.float32), self.fov)
+
+
+# --- the photo ------------------------------------------------------------------------------------
+
+
+def field_of_view_from_focal(focal_35mm: float, width: int, height: int) -> float:
+    """Field of view across the centre square of a width x height photo [deg], from its
+    35 mm-equivalent focal length [mm] (which matches the field of view of the frame's diagonal)."""
+    half_diagonal = math.atan(FILM_DIAGONAL_MM / 2.0 / focal_35mm)
+    side = min(width, height) / math.hypot(width, height)
+    return math.degrees(2.0 * math.atan(math.tan(half_diagonal) * side))
+
+
+def load_photo(path: str | Path, fov: float | None = None,
+               resolution: int | str = constants.DEFAULT_RESOLUTION) -> tuple[torch.Tensor, float, str, list[str]]:
+    """Read a flash photo for capture.
+
+    Returns:
+        (photo (3, R, R) linear, field of view [deg], its source, notes).
+
+    Raises:
+        InputError: unreadable, not an image, smaller than 64 pixels.
+    """
+    path = Path(path)
+    image = read_image(path, decode_srgb=True)
+    height, width = image.shape[:2]
+    notes = []
+    if min(height, width) < MIN_PHOTO_SIZE:
+        raise InputError(f"'{path}': {width}x{height} pixels is smaller than the {MIN_PHOTO_SIZE} pixels a capture needs")
+    if image.shape[2] == 1:
+        image = np.repeat(image, 3, axis=2)
+    focal, note = (None, None) if path.suffix.lower() == ".exr" else read_focal_length_35mm(path)
+    if note:
+        notes.append(note)
+    if focal:
+        used_fov, source = field_of_view_from_focal(focal, width, height), "exif"
+        notes.append(f"field of view {used_fov:.1f} deg from the EXIF 35 mm-equivalent focal length {focal:g} mm")
+    elif fov is not None:
+        used_fov, source = float(fov), "argument"
+    else:
+        used_fov, source = constants.DEFAULT_FOV_DEG, "default"
+        notes.append(f"no EXIF focal length: field of view {used_fov:g} deg assumed (set it with --fov)")
+    if width != height:
+        side = min(width, height)
+        top, left = (height - side) // 2, (width - side) // 2
+        image = image[top:top + side, left:left + side]
+        notes.append(f"the photo is {width}x{height}: its centre {side}x{side} square was used")
+    photo = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float()
+    target = _working_resolution(photo.shape[-1], resolution)
+    if target != photo.shape[-1]:
+        photo = F.interpolate(photo[None], size=(target, target), mode="area" if target < photo.shape[-1] else "bilinear",
+                              align_corners=None if target < photo.shape[-1] else False)[0]
+    photo = photo.clamp(0.0, 1.0)
+    mean = float(photo.mean())
+    if mean < 0.01:
+        warnings.warn(f"'{path.name}' is nearly black (mean {mean:.4f}): the capture will be poor")
+    if float((photo >= 0.999).float().mean()) > 0.25:
+        warnings.warn(f"'{path.name}' is clipped over a quarter of its pixels: the capture will be poor")
+    return photo, used_fov, source, notes
+
+
+def _working_resolution(side: int, resolution: int | str) -> int:
+    if resolution == "native":
+        return min(side, MAX_NATIVE_RESOLUTION)
+    return int(resolution)
+
+
+# --- prediction -------------------------------------------------------------------------------------
+
+
+def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
+            fov: float = constants.DEFAULT_FOV_DEG) -> DeepBasisOutput:
+    """One network pass: the material seen in ``photos`` taken with flashes at ``lights``.
+
+    Photos whose size is not a multiple of the network's stride are padded by reflection and the
+    prediction cropped back.
+    """
+    device = next(model.parameters()).device
+    height, width = photos.shape[-2:]
+    stride = model.config.stride
+    pad_h, pad_w = (-height) % stride, (-width) % stride
+    mark = lighting_mark(lights, height, width, fov, model.config.convention)
+    inputs = network_input(photos, mark)
+    if pad_h or pad_w:
+        inputs = F.pad(inputs, (0, pad_w, 0, pad_h), mode="reflect")
+    with torch.no_grad():
+        output = model(inputs.to(device), lights.to(device), fov=fov)
+    if pad_h or pad_w:
+        output = _crop_output(output, height, width)
+    return output
+
+
+def _crop_output(output: DeepBasisOutput, height: int, width: int) -> DeepBasisOutput:
+    def crop(value):
+        return value[..., :height, :width] if isinstance(value, torch.Tensor) and value.ndim >= 4 else value
+
+    return DeepBasisOutput(maps=crop(output.maps), weights=crop(output.weights), global_bases=output.global_bases,
+                           bases=crop(output.bases), deviations=crop(output.deviations), error=crop(output.error),
+                           extras={k: crop(v) for k, v in output.extras.items()})
+
+
+def _downsample(image: torch.Tensor, size: int) -> torch.Tensor:
+    """Area-average (..., C, H, W) to size x size (no-op when already there)."""
+    if image.shape[-1] == size and image.shape[-2] == size:
+        return image
+    shape = image.shape
+    flat = image.reshape(-1, *shape[-3:])
+    return F.interpolate(flat, size=(size, size), mode="area").reshape(*shape[:-2], size, size)
+
+
+def _downsample_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
+    small = _downsample(maps, size)
+    return torch.cat([F.normalize(small[:, :3], dim=1), small[:, 3:]], dim=1)
+
+
+# --- the lighting search -------------------------------------------------------------------------------
+
+
+def candidate_offsets(fov: float, max_offset_deg: float, grid: int, centre=(0.0, 0.0), span: float | None = None) -> torch.Tensor:
+    """A square grid of ``grid`` x ``grid`` offsets around ``centre`` over +-``span`` [patch half-widths]
+    (default: the whole reachable range), kept where the offset angle is within ``max_offset_deg``. (K, 2)."""
+    limit = geometry.max_offset(fov, max_offset_deg)
+    span = limit if span is None else span
+    axis = torch.linspace(-span, span, grid)
+    offsets = torch.stack(torch.meshgrid(axis, axis, indexing="xy"), -1).reshape(-1, 2) + torch.tensor(centre)
+    return offsets[torch.linalg.vector_norm(offsets, dim=-1) <= limit + 1e-6]
+
+
+def light_objective(maps: torch.Tensor, photo: torch.Tensor, offsets: torch.Tensor, fov: float, convention: str,
+                    batch: int = 64) -> torch.Tensor:
+    """Mean L1 between the photo and the clipped rendering of ``maps`` under each candidate, (K,).
+
+    Args:
+        maps: (1, 10, h, w) the material held fixed; photo: (1, 3, h, w); offsets: (K, 2).
+    """
+    from .render import render_flash
+
+    lights = geometry.light_positions(offsets, fov)
+    errors = []
+    with torch.no_grad():
+        for first in range(0, len(lights), batch):
+            chunk = lights[first:first + batch].unsqueeze(0)
+            rendered = render_flash(maps, chunk, fov=fov, convention=convention)[0].clamp(0.0, 1.0)
+            errors.append((rendered - photo).abs().mean(dim=(1, 2, 3)))
+    return torch.cat(errors)
+
+
+def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: CaptureConfig = CaptureConfig()
+                 ) -> tuple[tuple[float, float], list[dict], DeepBasisOutput]:
+    """Find the flash offset of ``photo`` (3, H, W); returns (offset, history, last prediction)."""
+    convention = model.config.convention
+    small_photo = _downsample(photo[None], config.search_resolution)
+    candidates = candidate_offsets(fov, config.max_offset_deg, config.search_grid)
+    current = torch.zeros(2)
+    history = []
+    output = None
+    for index in range(config.search_passes):
+        output = predict(model, photo[None], geometry.light_positions(current[None], fov), fov)
+        small_maps = _downsample_maps(output.maps.cpu(), config.search_resolution)
+        errors = light_objective(small_maps, small_photo, candidates, fov, convention)
+        best = candidates[int(torch.argmin(errors))]
+        history.append({"pass": index + 1, "offset": current.tolist(), "best_candidate": best.tolist(),
+                        "objective": float(errors.min())})
+        if torch.allclose(best, current, atol=1e-6):
+            break
+        current = best
+    # A finer grid around the last candidate, with the material of the last pass.
+    step = 2 * geometry.max_offset(fov, config.max_offset_deg) / max(1, config.search_grid - 1)
+    fine = candidate_offsets(fov, config.max_offset_deg, 9, centre=tuple(current.tolist()), span=step)
+    errors = light_objective(small_maps, small_photo, fine, fov, convention)
+    current = fine[int(torch.argmin(errors))]
+    history.append({"pass": "fine", "offset": current.tolist(), "objective": float(errors.min())})
+    return (float(current[0]), float(current[1])), history, output
+
+
+# --- refinement of the global bases ---------------------------------------------------------------------
+
+
+def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: torch.Tensor, fov: float,
+                        convention: str, steps: int = 500, resolution: int = 64, lr: float = 0.01,
+                        progress: bool = False) -> tuple[torch.Tensor, list[float]]:
+    """Optimise the global bases so the rendering matches the photo; weights and deviations stay fixed.
+
+    Args:
+        output: the prediction (weights, global bases, deviations) of one photo.
+        photo: (3, H, W) the photo, linear; light: (3,) the flash position.
+        steps, resolution, lr: Adam steps, render resolution [pixels], learning rate.
+
+    Returns:
+        ((1, N, 10) refined global bases, signed space; the loss at every step).
+    """
+    from tqdm import tqdm
+
+    from .render import render_flash
+
+    weights = _downsample(output.weights.detach().cpu(), resolution)
+    weights = weights / weights.sum(dim=1, keepdim=True).clamp(min=1e-6)
+    deviations = _downsample(_deviations(output).detach().cpu(), resolution)
+    target = _downsample(photo[None], resolution)
+    lights = light.view(1, 1, 3)
+    global_bases = output.global_bases.detach().cpu().clone().requires_grad_(True)
+    optimizer = torch.optim.Adam([global_bases], lr=lr)
+    losses = []
+    # The tensors here are small: waking torch's worker threads for every op costs more than it saves.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for _ in tqdm(range(steps), desc="refining", unit="step", disable=not progress):
+            bases = normalize_basis_normals(global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
+            maps = to_maps(blend(weights, bases))
+            rendered = render_flash(maps, lights, fov=fov, convention=convention)[:, 0].clamp(0.0, 1.0)
+            loss = (rendered - target).abs().mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            with torch.no_grad():  # keep the bases inside the signed space the network predicts in
+                global_bases.clamp_(-1.0, 1.0)
+            losses.append(loss.item())
+    finally:
+        torch.set_num_threads(threads)
+    return global_bases.detach(), losses
+
+
+def _deviations(output: DeepBasisOutput) -> torch.Tensor:
+    """The local deviations, or zeros for a network without local bases."""
+    if output.deviations is not None:
+        return output.deviations
+    batch, n = output.global_bases.shape[:2]
+    return output.global_bases.new_zeros(batch, n, constants.BASIS_CHANNELS, 1, 1).expand(
+        -1, -1, -1, *output.weights.shape[-2:])
+
+
+def maps_from_bases(output: DeepBasisOutput, global_bases: torch.Tensor) -> torch.Tensor:
+    """Full-resolution maps (1, 10, H, W) from (refined) global bases and the predicted weights and deviations."""
+    deviations = _deviations(output)
+    bases = normalize_basis_normals(global_bases.to(deviations)[..., None, None] + deviations, dim=2)
+    return to_maps(blend(output.weights, bases.clamp(-1.0, 1.0)))
+
+
+# --- the whole capture ----------------------------------------------------------------------------------
+
+
+def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path | None = None,
+            config: CaptureConfig = CaptureConfig(), progress: bool = False, **overrides) -> CaptureResult:
+    """Capture a material from one flash photo.
+
+    Args:
+        image: a photo file, or a (3, H, W) linear tensor (then ``config.fov`` or 45 deg applies).
+        model: a DeepBasisNet, a checkpoint path, or None for the shipped model.
+        config: the capture settings; keyword ``overrides`` replace its fields.
+        progress: show progress bars.
+
+    Returns:
+        the CaptureResult (material, light, timings, losses, notes).
+    """
+    from dataclasses import replace
+
+    from .model.checkpoint import load_model
+
+    config = replace(config, **overrides) if overrides else config
+    timings = {}
+    start = time.perf_counter()
+    if not isinstance(model, DeepBasisNet):
+        model = load_model(model)
+    timings["model"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    if isinstance(image, torch.Tensor):
+        photo = image.float().clamp(0, 1)
+        fov, source, notes = (config.fov, "argument", []) if config.fov else (constants.DEFAULT_FOV_DEG, "default", [])
+    else:
+        photo, fov, source, notes = load_photo(image, config.fov, config.resolution)
+    timings["photo"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    history = []
+    if config.light is None:
+        offset, history, output = search_light(model, photo, fov, config)
+        timings["search"] = time.perf_counter() - start
+        start = time.perf_counter()
+    else:
+        offset = (float(config.light[0]), float(config.light[1]))
+    light = geometry.light_positions(torch.tensor(offset, dtype=torch.float32), fov)
+    output = predict(model, photo[None], light[None], fov)
+    timings["predict"] = time.perf_counter() - start
+
+    losses = []
+    maps = output.maps.cpu()
+    if config.refine_steps > 0 and output.weights is not None:
+        start = time.perf_counter()
+        refined, losses = refine_global_bases(output, photo, light, fov, model.config.convention, config.refine_steps,
+                                              config.refine_resolution, config.refine_lr, progress)
+        output.global_bases = refined.to(output.global_bases)
+        maps = maps_from_bases(output, refined).cpu()
+        timings["refine"] = time.perf_counter() - start
+    material = Material.from_tensor(maps[0], convention=model.config.convention,
+                                    provenance={"capture": {"offset": list(offset), "fov": fov, "fov_source": source,
+                                                            "searched": config.light is None,
+                                                            "refine_steps": config.refine_steps}})
+    return CaptureResult(material=material, photo=photo, offset=offset, fov=fov, fov_source=source,
+                         searched=config.light is None, search_history=history, refinement_losses=losses,
+                         timings=timings, notes=notes, output=output)

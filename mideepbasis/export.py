@@ -1,0 +1,254 @@
+"""What a capture leaves behind: the material folder, a Mitsuba scene, a glTF material, renders, a report.
+
+``save_capture`` writes everything into a temporary folder beside the target and renames it into
+place at the end, so the target is either complete or untouched.
+
+Files of a capture folder:
+
+- ``normal.png``, ``diffuse.png``, ``roughness.png``, ``specular.png``, ``material.json``: the
+  material (DESIGN section 3); with ``exr=True`` also the ``.exr`` maps (linear, signed normals);
+- ``light.json``: the flash offset [patch half-widths] and its angle [deg], the field of view and
+  where it came from, the lighting search's passes;
+- ``photo.png`` (the working photo), ``rerender.png`` (the material under the estimated flash),
+  ``error.png`` (|rerender - photo|, x4), ``environment.png`` (path traced in the studio);
+- ``scene.xml``: a Mitsuba scene of the capture that uses the maps above and the ``svbrdf`` plugin
+  (``import mideepbasis.render`` registers it before ``mi.load_file``);
+- ``material.gltf`` with ``base_color.png``, ``metallic_roughness.png`` and ``specular_color.png``:
+  a glTF 2.0 quad with the metallic-roughness approximation and KHR_materials_specular;
+- ``report.png`` and ``report.html``.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import os
+import shutil
+import struct
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import constants, geometry
+from .errors import InputError
+from .imageio import linear_to_srgb, write_bytes, write_image
+
+
+def _json_bytes(document: dict) -> bytes:
+    return (json.dumps(document, indent=2) + "\n").encode()
+
+
+def _hwc(image: torch.Tensor) -> np.ndarray:
+    return image.detach().cpu().permute(1, 2, 0).numpy()
+
+
+# --- the Mitsuba scene ------------------------------------------------------------------------------
+
+_SCENE = """<!-- A mideepbasis capture as a Mitsuba 3 scene: the flash shot that was estimated, with the
+     captured maps on the sample square [-1, 1]^2 (z = 0, +z up). The svbrdf plugin is Python:
+         import mideepbasis.render, mitsuba as mi
+         image = mi.render(mi.load_file("scene.xml"), spp=64)
+     Maps: diffuse and specular are sRGB PNGs (decoded by Mitsuba), normal (n + 1) / 2, roughness linear.
+     Image row 0 lies at +y: the bitmaps flip v. -->
+<scene version="3.0.0">
+    <default name="spp" value="64"/>
+    <default name="resolution" value="{resolution}"/>
+
+    <integrator type="direct">
+        <integer name="emitter_samples" value="1"/>
+        <integer name="bsdf_samples" value="0"/>
+    </integrator>
+
+    <sensor type="perspective">
+        <float name="fov" value="{fov}"/>
+        <string name="fov_axis" value="x"/>
+        <float name="principal_point_offset_x" value="{ppx}"/>
+        <float name="principal_point_offset_y" value="{ppy}"/>
+        <transform name="to_world">
+            <lookat origin="{tx}, {ty}, {height}" target="{tx}, {ty}, 0" up="0, 1, 0"/>
+        </transform>
+        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
+        <film type="hdrfilm">
+            <integer name="width" value="$resolution"/>
+            <integer name="height" value="$resolution"/>
+            <string name="pixel_format" value="rgb"/>
+            <rfilter type="box"/>
+        </film>
+    </sensor>
+
+    <emitter type="point">
+        <point name="position" x="{tx}" y="{ty}" z="{height}"/>
+        <float name="intensity" value="{intensity}"/>
+    </emitter>
+
+    <shape type="rectangle">
+        <bsdf type="svbrdf">
+            <string name="convention" value="{convention}"/>
+            <string name="normal_encoding" value="unsigned"/>
+{textures}
+        </bsdf>
+    </shape>
+</scene>
+"""
+
+_TEXTURE = """            <texture type="bitmap" name="{name}">
+                <string name="filename" value="{name}.png"/>
+                <boolean name="raw" value="{raw}"/>
+                <transform name="to_uv"><scale x="1" y="-1"/><translate x="0" y="1"/></transform>
+            </texture>"""
+
+
+def scene_xml(offset: tuple[float, float], fov: float, resolution: int, convention: str) -> str:
+    """The capture as Mitsuba XML, reading the PNG maps beside it."""
+    height = constants.camera_height(fov)
+    tx, ty = offset
+    textures = "\n".join(_TEXTURE.format(name=name, raw="false" if name in ("diffuse", "specular") else "true")
+                         for name in ("normal", "diffuse", "roughness", "specular"))
+    return _SCENE.format(resolution=resolution, fov=fov, ppx=-tx / 2, ppy=ty / 2, tx=tx, ty=ty, height=height,
+                         intensity=math.pi * height**2, convention=convention, textures=textures)
+
+
+# --- glTF ----------------------------------------------------------------------------------------------
+
+
+def gltf_material(material, folder: Path, name: str = "captured material") -> dict:
+    """Write the glTF textures into ``folder`` and return the glTF 2.0 document of a 2 x 2 quad
+    lying on the ground (+Y up) with the material: metallic-roughness plus KHR_materials_specular.
+
+    Our +x is glTF +X, our +y (the top of the image) is glTF -Z; the normal texture is the
+    material's ``normal.png`` (glTF normal maps are +Y up, as ours).
+    """
+    pbr = material.to_pbr()
+    base = pbr["base_color"]
+    metallic, roughness = pbr["metallic"], pbr["roughness"]
+    zeros = torch.zeros_like(metallic)
+    write_image(folder / "base_color.png", _hwc(base), encode_srgb=True)
+    write_image(folder / "metallic_roughness.png", _hwc(torch.cat([zeros, roughness, metallic])))
+    # Dielectric F0 = 0.04 x specularColorFactor x texture: the texture holds F0 / (0.04 x factor).
+    specular = material.specular * (1 - metallic) + constants.DIELECTRIC_F0 * metallic
+    factor = max(1.0, float(specular.max()) / constants.DIELECTRIC_F0)
+    write_image(folder / "specular_color.png", _hwc((specular / (constants.DIELECTRIC_F0 * factor)).clamp(0, 1)),
+                encode_srgb=True)
+
+    positions = [(-1.0, 0.0, 1.0), (1.0, 0.0, 1.0), (1.0, 0.0, -1.0), (-1.0, 0.0, -1.0)]
+    normals = [(0.0, 1.0, 0.0)] * 4
+    tangents = [(1.0, 0.0, 0.0, 1.0)] * 4
+    uvs = [(0.0, 1.0), (1.0, 1.0), (1.0, 0.0), (0.0, 0.0)]
+    indices = [0, 1, 2, 0, 2, 3]
+    blobs = [struct.pack("<12f", *sum(positions, ())), struct.pack("<12f", *sum(normals, ())),
+             struct.pack("<16f", *sum(tangents, ())), struct.pack("<8f", *sum(uvs, ())), struct.pack("<6H", *indices)]
+    offsets, data = [], b""
+    for blob in blobs:
+        offsets.append(len(data))
+        data += blob + b"\0" * ((-len(blob)) % 4)
+    views = [{"buffer": 0, "byteOffset": o, "byteLength": len(b)} for o, b in zip(offsets, blobs)]
+    views[-1]["target"] = 34963
+    for view in views[:-1]:
+        view["target"] = 34962
+    accessors = [
+        {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [-1, 0, -1], "max": [1, 0, 1]},
+        {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC3"},
+        {"bufferView": 2, "componentType": 5126, "count": 4, "type": "VEC4"},
+        {"bufferView": 3, "componentType": 5126, "count": 4, "type": "VEC2"},
+        {"bufferView": 4, "componentType": 5123, "count": 6, "type": "SCALAR"},
+    ]
+    return {
+        "asset": {"version": "2.0", "generator": "mideepbasis"},
+        "extensionsUsed": ["KHR_materials_specular"],
+        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "sample"}],
+        "meshes": [{"name": "sample", "primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1, "TANGENT": 2,
+                                                                     "TEXCOORD_0": 3}, "indices": 4, "material": 0}]}],
+        "materials": [{
+            "name": name,
+            "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicRoughnessTexture": {"index": 1},
+                                     "metallicFactor": 1.0, "roughnessFactor": 1.0},
+            "normalTexture": {"index": 2},
+            "extensions": {"KHR_materials_specular": {"specularColorTexture": {"index": 3},
+                                                      "specularColorFactor": [factor] * 3}},
+        }],
+        "textures": [{"source": i, "sampler": 0} for i in range(4)],
+        "images": [{"uri": uri} for uri in ("base_color.png", "metallic_roughness.png", "normal.png", "specular_color.png")],
+        "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}],
+        "buffers": [{"byteLength": len(data),
+                     "uri": "data:application/octet-stream;base64," + base64.b64encode(data).decode()}],
+        "bufferViews": views, "accessors": accessors,
+    }
+
+
+# --- the capture folder ------------------------------------------------------------------------------
+
+
+def check_output(out: Path, overwrite: bool) -> None:
+    """Refuse an output folder that exists and is not empty (unless ``overwrite``)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output {out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise InputError(f"output folder {out} exists and is not empty: choose another or pass --overwrite")
+
+
+def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: bool = False,
+                 environment: str = "studio", environment_spp: int = constants.DEFAULT_SPP,
+                 progress: bool = False) -> Path:
+    """Write everything a capture gives (see the module docstring) into ``out``, atomically."""
+    from .render import render_flash
+    from .render.scenes import preview_scene, render
+    from .reporting import capture_report
+
+    out = Path(out)
+    check_output(out, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
+        material = result.material
+        if exr:
+            material.save(staging, format="exr")
+        material.save(staging, format="png")
+        light = {"offset": list(result.offset), "offset_unit": "patch half-widths",
+                 "offset_angle_deg": result.offset_angle_deg,
+                 "offset_angles_deg": [math.degrees(math.atan(t / constants.camera_height(result.fov)))
+                                       for t in result.offset],
+                 "position": result.light_position.tolist(), "fov_deg": result.fov, "fov_source": result.fov_source,
+                 "searched": result.searched, "search": result.search_history}
+        write_bytes(staging / "light.json", _json_bytes(light))
+
+        maps = material.to_tensor()[None]
+        with torch.no_grad():
+            rerender = render_flash(maps, result.light_position.view(1, 1, 3), fov=result.fov,
+                                    convention=material.convention)[0, 0]
+        error = (rerender.clamp(0, 1) - result.photo).abs()
+        write_image(staging / "photo.png", _hwc(result.photo).clip(0, 1), encode_srgb=True)
+        write_image(staging / "rerender.png", _hwc(rerender).clip(0, 1), encode_srgb=True)
+        write_image(staging / "error.png", (_hwc(error) * 4).clip(0, 1), encode_srgb=True)
+        scene = preview_scene(maps[0], environment=environment, spp=environment_spp, convention=material.convention)
+        environment_image = render(scene, progress=progress)
+        write_image(staging / "environment.png", environment_image.clip(0, 1), encode_srgb=True)
+
+        (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width, material.convention))
+        write_bytes(staging / "material.gltf", _json_bytes(gltf_material(material, staging)))
+        capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,
+                       rerender_rmse=float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt()))
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(staging, out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return out
+
+
+def light_diagram_points(fov: float, offset: tuple[float, float]) -> dict:
+    """The reachable offsets' radius and the estimate, for the report's light diagram [deg]."""
+    height = constants.camera_height(fov)
+    return {"radius_deg": constants.MAX_OFFSET_DEG,
+            "estimate_deg": [math.degrees(math.atan(t / height)) for t in offset],
+            "max_offset": geometry.max_offset(fov)}
+
+
+def report_table(rows: dict) -> str:
+    return "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows.items())

@@ -1,0 +1,224 @@
+"""Capture: lighting search, refinement, outputs (material, Mitsuba scene, glTF, report), batch and bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from mideepbasis import cli, constants, geometry
+from mideepbasis.capture import (CaptureConfig, capture, field_of_view_from_focal, load_photo, maps_from_bases,
+                                 refine_global_bases, search_light)
+from mideepbasis.evaluate import flash_photos, light_error_deg
+from mideepbasis.export import save_capture
+from mideepbasis.imageio import write_image
+from mideepbasis.material import Material
+from mideepbasis.model.checkpoint import save_checkpoint
+from mideepbasis.model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, to_signed
+from mideepbasis.render import render_flash
+
+
+class OracleModel(DeepBasisNet):
+    """Predicts the true material whatever it is shown (one basis: global mean plus per-pixel deviations).
+
+    It isolates the lighting search and the refinement from the quality of a trained network.
+    """
+
+    def __init__(self, truth: torch.Tensor):
+        super().__init__(preset("tiny", num_bases=1, use_local=True))
+        self.truth = truth
+        self.config = NetworkConfig(encoder_channels=(8,), decoder_channels=(), num_bases=1)
+
+    def forward(self, inputs, lights=None, fov=constants.DEFAULT_FOV_DEG):
+        signed = to_signed(self.truth)
+        global_bases = signed.mean(dim=(2, 3)).view(1, 1, 10)
+        deviations = (signed - global_bases.view(1, 10, 1, 1)).view(1, 1, 10, *signed.shape[-2:])
+        weights = torch.ones(1, 1, *signed.shape[-2:])
+        output = DeepBasisOutput(maps=None, weights=weights, global_bases=global_bases, deviations=deviations)
+        output.maps = maps_from_bases(output, global_bases)
+        return output
+
+
+def material(seed=3, size=64):
+    from mideepbasis.data.procedural import GeneratorConfig, generate
+
+    return generate(seed, config=GeneratorConfig(size=size, mix_probability=0.0, weathering=False)).to_tensor()[None]
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("model") / "tiny.safetensors"
+    return save_checkpoint(path, DeepBasisNet(preset("tiny")).eval())
+
+
+@pytest.mark.parametrize("seed,offset_deg", [(3, (6.0, -4.0)), (8, (-10.0, 3.0)), (21, (2.0, 9.0)), (30, (0.0, 0.0))])
+def test_lighting_search_finds_the_flash(seed, offset_deg):
+    truth = material(seed)
+    height = constants.camera_height(45.0)
+    offset = torch.tensor([[height * math.tan(math.radians(a)) for a in offset_deg]])
+    photos, _ = flash_photos(truth, offset)
+    found, history, _ = search_light(OracleModel(truth), photos[0], 45.0, CaptureConfig(search_resolution=64))
+    assert light_error_deg(found, offset[0].tolist()) < 1.0, (found, offset, history)
+    assert 2 <= len(history) <= CaptureConfig().search_passes + 1
+
+
+def test_refinement_lowers_the_error_and_moves_only_the_global_bases():
+    truth = material(5)
+    photos, lights = flash_photos(truth, torch.tensor([[0.2, 0.1]]))
+    output = OracleModel(truth)(None)
+    output.global_bases = output.global_bases + torch.tensor([0.0, 0.0, 0.0, 0.3, -0.2, 0.25, 0.4, -0.3, 0.2, 0.1]).view(1, 1, 10)
+    weights, deviations = output.weights.clone(), output.deviations.clone()
+
+    def error(global_bases):
+        maps = maps_from_bases(output, global_bases)
+        rendered = render_flash(maps, lights.view(1, 1, 3))[:, 0].clamp(0, 1)
+        return float((rendered - photos).abs().mean())
+
+    before = error(output.global_bases)
+    refined, losses = refine_global_bases(output, photos[0], lights[0], 45.0, "physical", steps=150, resolution=32, lr=0.02)
+    assert error(refined) < 0.5 * before
+    assert losses[-1] < losses[0]
+    assert torch.equal(output.weights, weights) and torch.equal(output.deviations, deviations)
+
+
+def test_field_of_view_from_the_exif_focal_length():
+    # A 36 x 24 frame with a 50 mm lens sees 39.6 deg across its width; its centre 24 x 24 square less.
+    assert field_of_view_from_focal(50.0, 3600, 2400) == pytest.approx(2 * math.degrees(math.atan(12 / 50)), rel=1e-6)
+    assert field_of_view_from_focal(26.0, 4000, 3000) == pytest.approx(2 * math.degrees(math.atan(
+        math.tan(math.atan(21.633 / 26.0)) * 3000 / 5000)), rel=1e-4)
+
+
+def photo_file(tmp_path, name="photo.jpg", size=(96, 80), focal=None, value=0.4):
+    pixels = (np.random.default_rng(0).uniform(0.2, 0.8, size[::-1] + (3,)) * 255 * value / 0.4).clip(0, 255)
+    image = Image.fromarray(pixels.astype(np.uint8))
+    exif = Image.Exif()
+    if focal:
+        exif.get_ifd(0x8769)[0xA405] = focal
+    path = tmp_path / name
+    image.save(path, exif=exif)
+    return path
+
+
+def test_photo_loading_crops_resamples_and_reads_the_field_of_view(tmp_path):
+    photo, fov, source, notes = load_photo(photo_file(tmp_path, focal=28), resolution=64)
+    assert photo.shape == (3, 64, 64) and source == "exif"
+    assert fov == pytest.approx(field_of_view_from_focal(28, 96, 80))
+    assert any("centre 80x80 square" in note for note in notes)
+    _, fov, source, _ = load_photo(photo_file(tmp_path, "plain.png"), fov=60.0, resolution=64)
+    assert (fov, source) == (60.0, "argument")
+    _, fov, source, notes = load_photo(photo_file(tmp_path, "plain2.png"), resolution=64)
+    assert (fov, source) == (45.0, "default") and any("45 deg assumed" in n for n in notes)
+
+
+def test_capture_outputs_load_back_render_and_validate(tmp_path, tiny_checkpoint):
+    truth = material(4, size=64)
+    photos, _ = flash_photos(truth, torch.tensor([[0.1, -0.1]]))
+    write_image(tmp_path / "shot.png", photos[0].permute(1, 2, 0).numpy(), encode_srgb=True)
+    result = capture(tmp_path / "shot.png", model=tiny_checkpoint, resolution=64, refine_steps=20,
+                     search_resolution=32, search_grid=9)
+    out = save_capture(result, tmp_path / "out", exr=True, environment_spp=4)
+
+    loaded = Material.load(out)
+    assert torch.allclose(loaded.to_tensor(), result.material.to_tensor(), atol=1.5 / 255)
+    exr = {name: out / f"{name}.exr" for name in ("normal", "diffuse", "roughness", "specular")}
+    assert all(p.is_file() for p in exr.values())
+    light = json.loads((out / "light.json").read_text())
+    assert light["offset"] == pytest.approx(list(result.offset)) and light["fov_source"] == "default"
+    for name in ("photo.png", "rerender.png", "error.png", "environment.png", "report.png", "report.html"):
+        assert (out / name).is_file(), name
+
+    import mitsuba as mi
+
+    scene = mi.load_file(str(out / "scene.xml"), spp="64")
+    traced = np.array(mi.render(scene, spp=64))[..., :3]
+    with torch.no_grad():
+        expected = render_flash(loaded.to_tensor()[None], result.light_position.view(1, 1, 3))[0, 0].permute(1, 2, 0).numpy()
+    # The tiny untrained model's maps change from pixel to pixel, and the path tracer averages over
+    # each pixel's footprint with bilinear textures: compare 8 x 8 blocks.
+    def blocks(image):
+        return image.reshape(8, 8, 8, 8, 3).mean(axis=(1, 3))
+
+    assert np.abs(blocks(traced) - blocks(expected)).mean() / expected.mean() < 0.03
+
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(out / "material.gltf"))
+    assert gltf.asset.version == "2.0" and len(gltf.materials) == 1
+    assert "KHR_materials_specular" in gltf.materials[0].extensions
+    for image in gltf.images:
+        assert (out / image.uri).is_file(), image.uri
+    assert len(gltf.binary_blob() or gltf.decode_data_uri(gltf.buffers[0].uri)) == gltf.buffers[0].byteLength
+
+
+def run_cli(*args) -> int:
+    return cli.main([str(a) for a in args])
+
+
+def test_batch_survives_a_corrupt_photo(tmp_path, tiny_checkpoint, capsys):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for name in ("a.png", "b.jpg"):
+        photo_file(folder, name, size=(64, 64))
+    (folder / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    status = run_cli("capture", folder, "-o", tmp_path / "out", "--model", tiny_checkpoint, "--resolution", "64",
+                     "--refine-steps", "5", "--light", "0,0")
+    assert status == 1
+    assert (tmp_path / "out" / "a" / "material.json").is_file() and (tmp_path / "out" / "b" / "material.json").is_file()
+    assert not (tmp_path / "out" / "broken").exists()
+    captured = capsys.readouterr()
+    assert "captured 2 of 3 photos" in captured.out and "broken.jpg" in captured.out + captured.err
+
+
+def test_bad_input_gives_one_line_and_writes_nothing(tmp_path, tiny_checkpoint, capsys):
+    cases = {}
+    (tmp_path / "text.jpg").write_text("not an image")
+    cases["text.jpg"] = "not an image"
+    photo_file(tmp_path, "good.png", size=(64, 64))
+    data = (tmp_path / "good.png").read_bytes()
+    (tmp_path / "truncated.png").write_bytes(data[: len(data) // 3])
+    cases["truncated.png"] = "truncated"
+    photo_file(tmp_path, "small.png", size=(40, 40))
+    cases["small.png"] = "smaller than the 64 pixels"
+    for name, message in cases.items():
+        out = tmp_path / f"out_{name}"
+        assert run_cli("capture", tmp_path / name, "-o", out, "--model", tiny_checkpoint, "--resolution", "64") == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("mideepbasis: error:") and "\n" not in err and message in err, (name, err)
+        assert not out.exists()
+        assert not list(tmp_path.glob(".out_*"))
+
+    occupied = tmp_path / "occupied"
+    occupied.mkdir()
+    (occupied / "keep.txt").write_text("mine")
+    assert run_cli("capture", tmp_path / "good.png", "-o", occupied, "--model", tiny_checkpoint, "--resolution", "64") == 2
+    assert "--overwrite" in capsys.readouterr().err and (occupied / "keep.txt").read_text() == "mine"
+
+    not_a_model = tmp_path / "model.safetensors"
+    not_a_model.write_bytes(b"\x00" * 64)
+    assert run_cli("capture", tmp_path / "good.png", "-o", tmp_path / "x", "--model", not_a_model) == 2
+    assert "not a safetensors checkpoint" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def test_dark_clipped_and_broken_exif_photos_warn_but_go_through(tmp_path):
+    with pytest.warns(UserWarning, match="nearly black"):
+        load_photo(photo_file(tmp_path, "dark.png", size=(64, 64), value=0.002), resolution=64)
+    write_image(tmp_path / "white.png", np.ones((64, 64, 3), np.float32))
+    with pytest.warns(UserWarning, match="clipped"):
+        load_photo(tmp_path / "white.png", resolution=64)
+    # An EXIF block whose Exif-IFD pointer leads nowhere.
+    import struct
+
+    image = Image.fromarray((np.ones((64, 64, 3)) * 120).astype(np.uint8))
+    broken = b"Exif\x00\x00II*\x00" + struct.pack("<IH", 8, 1) + struct.pack("<HHII", 0x8769, 4, 1, 10_000_000) + b"\0" * 4
+    image.save(tmp_path / "broken_exif.jpg", exif=broken)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, fov, source, notes = load_photo(tmp_path / "broken_exif.jpg", resolution=64)
+    assert (fov, source) == (45.0, "default")
+    assert any("EXIF block of 'broken_exif.jpg' could not be parsed" in note for note in notes)
