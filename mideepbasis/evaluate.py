@@ -1,5 +1,9 @@
 """Evaluation: map errors and re-rendering errors of predicted materials against ground truth.
 
+``mideepbasis evaluate`` runs ``run_evaluation``: it writes ``summary.json``, ``per_material.csv``,
+``table.md``, ``bars.png`` and ``gallery.png`` (the 4 best and 4 worst materials: true maps, then
+predicted maps) and, with ``--lighting``, ``lighting.png``.
+
 Protocol (the paper's): the input photo is re-rendered from the ground-truth maps under a flash
 (centred, or a seeded hand-held offset per material), photographed as an 8-bit sRGB image, and
 the method predicts the maps from it. Map RMSE is computed on the maps in their stored encoding
@@ -13,7 +17,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from . import constants, geometry
@@ -131,3 +137,460 @@ class Scores:
         if self.render is not None:
             result["render_rmse"] = float(self.render.mean())
         return result
+
+
+# --- image metrics -------------------------------------------------------------------------------------
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Structural similarity of images in [0, 1] (Wang et al. 2004; Gaussian 11 x 11, sigma 1.5).
+
+    Args:
+        a, b: (N, C, H, W).
+
+    Returns:
+        (N,) mean SSIM over pixels and channels.
+    """
+    coordinates = torch.arange(window, dtype=a.dtype) - (window - 1) / 2
+    gauss = torch.exp(-(coordinates**2) / (2 * sigma**2))
+    gauss = gauss / gauss.sum()
+    kernel = (gauss[:, None] * gauss[None, :]).expand(a.shape[1], 1, window, window).contiguous()
+
+    def blur(x):
+        return torch.nn.functional.conv2d(x, kernel, groups=a.shape[1])
+
+    c1, c2 = 0.01**2, 0.03**2
+    mu_a, mu_b = blur(a), blur(b)
+    var_a, var_b = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2
+    covariance = blur(a * b) - mu_a * mu_b
+    value = ((2 * mu_a * mu_b + c1) * (2 * covariance + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+    return value.mean(dim=(1, 2, 3))
+
+
+def flip(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean LDR FLIP error (NVIDIA's flip-evaluator) of sRGB-encoded images in [0, 1], (N, 3, H, W) -> (N,)."""
+    import flip_evaluator
+
+    values = []
+    for reference, test in zip(a, b):
+        _, mean, _ = flip_evaluator.evaluate(reference.permute(1, 2, 0).numpy().astype(np.float32),
+                                             test.permute(1, 2, 0).numpy().astype(np.float32), "LDR",
+                                             applyMagma=False)
+        values.append(mean)
+    return torch.tensor(values)
+
+
+class LPIPS(torch.nn.Module):
+    """LPIPS (Zhang et al. 2018), AlexNet variant, from weights already on this machine.
+
+    Needs torchvision's AlexNet weights in the torch hub cache (``alexnet-owt-7be5be79.pth``) and
+    the LPIPS linear layers (``alex.pth`` of the ``lpips`` package); ``available()`` says why not.
+    Nothing is ever downloaded.
+    """
+
+    ALEXNET = "alexnet-owt-7be5be79.pth"
+    CHANNELS = (64, 192, 384, 256, 256)
+
+    @classmethod
+    def weight_files(cls) -> tuple[Path | None, Path | None, str | None]:
+        hub = Path(torch.hub.get_dir()) / "checkpoints" / cls.ALEXNET
+        linear = None
+        try:
+            import importlib.util
+
+            spec = importlib.util.find_spec("lpips")
+            if spec and spec.origin:
+                candidate = Path(spec.origin).parent / "weights" / "v0.1" / "alex.pth"
+                linear = candidate if candidate.is_file() else None
+        except (ImportError, ValueError):
+            linear = None
+        if not hub.is_file():
+            return None, linear, f"LPIPS skipped: no AlexNet weights at {hub} (nothing is downloaded)"
+        if linear is None:
+            return hub, None, "LPIPS skipped: the LPIPS linear weights (package lpips) are not installed"
+        return hub, linear, None
+
+    def __init__(self, alexnet: Path, linear: Path):
+        super().__init__()
+        from torch import nn
+
+        self.features = nn.Sequential(
+            nn.Conv2d(3, 64, 11, 4, 2), nn.ReLU(), nn.MaxPool2d(3, 2), nn.Conv2d(64, 192, 5, padding=2), nn.ReLU(),
+            nn.MaxPool2d(3, 2), nn.Conv2d(192, 384, 3, padding=1), nn.ReLU(), nn.Conv2d(384, 256, 3, padding=1),
+            nn.ReLU(), nn.Conv2d(256, 256, 3, padding=1), nn.ReLU())
+        state = torch.load(alexnet, map_location="cpu", weights_only=True)
+        self.features.load_state_dict({k[len("features."):]: v for k, v in state.items() if k.startswith("features.")})
+        lins = torch.load(linear, map_location="cpu", weights_only=True)
+        self.lins = [lins[f"lin{i}.model.1.weight"] for i in range(5)]
+        self.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1))
+        self.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1))
+        self.eval()
+
+    def _taps(self, x):
+        x = ((x * 2 - 1) - self.shift) / self.scale
+        taps = []
+        for index, layer in enumerate(self.features):
+            x = layer(x)
+            if index in (1, 4, 7, 9, 11):
+                taps.append(x / (x.pow(2).sum(1, keepdim=True).sqrt() + 1e-10))
+        return taps
+
+    def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) sRGB in [0, 1] -> (N,) LPIPS distance."""
+        with torch.no_grad():
+            distance = 0
+            for lin, fa, fb in zip(self.lins, self._taps(a), self._taps(b)):
+                distance = distance + (torch.nn.functional.conv2d((fa - fb) ** 2, lin)).mean(dim=(1, 2, 3))
+        return distance
+
+
+# --- the evaluation run ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """An evaluation run (``mideepbasis evaluate``)."""
+
+    data: str
+    """Dataset path [folder]."""
+
+    format: str = "deschaintre5"
+    """``deschaintre5``, ``deschaintre4`` (strips) or ``folder`` (material folders or PBR maps)."""
+
+    out: str = "evaluation"
+    """Output folder."""
+
+    model: str | None = None
+    """Checkpoint of the model (None: the shipped one)."""
+
+    light: str = "known"
+    """``known``: the model is given the offset; ``search``: it finds it."""
+
+    refine_steps: int = 0
+    """Refinement steps of the model's row (the paper: 500)."""
+
+    baselines: bool = False
+    """Add the trivial, direct (``direct_model``), unrefined and refined rows."""
+
+    direct_model: str | None = None
+    """Checkpoint of the direct per-pixel network (the no-bases ablation) for ``baselines``."""
+
+    lighting: bool = False
+    """Also measure the lighting search's accuracy and the robustness to the offset."""
+
+    seed: int = 0
+    """Seed of the offsets and of the re-rendering lights and views."""
+
+    fov: float = constants.DEFAULT_FOV_DEG
+    """Field of view of the re-rendered inputs [deg]."""
+
+    limit: int | None = None
+    """Evaluate only the first this many materials (quick runs)."""
+
+
+def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch.Tensor, int]:
+    """(names, maps (N, 10, H, W), number skipped) of a dataset; every material at one size."""
+    from .data.datasets import DeschaintreDataset, MaterialFolderDataset, PBRFolderDataset
+
+    data = Path(data)
+    if format in ("deschaintre5", "deschaintre4"):
+        reader = DeschaintreDataset(data)
+    elif format == "folder":
+        reader = MaterialFolderDataset(data)
+        if not len(reader):
+            reader = PBRFolderDataset(data)
+    else:
+        from .errors import InputError
+
+        raise InputError(f"unknown dataset format {format!r}: expected deschaintre5, deschaintre4 or folder")
+    names, maps = [], []
+    for source in reader.sources:
+        material = reader.try_load(source)
+        if material is None:
+            continue
+        names.append(Path(str(source)).stem)
+        maps.append(material.to_tensor())
+    if not maps:
+        from .errors import InputError
+
+        raise InputError(f"{data}: no readable materials ({reader.skipped} skipped)")
+    size = min(m.shape[-1] for m in maps)
+    maps = [m if m.shape[-1] == size else _resize_maps(m, size) for m in maps]
+    return names, torch.stack(maps), reader.skipped
+
+
+def _resize_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
+    small = torch.nn.functional.interpolate(maps[None], size=(size, size), mode="area")[0]
+    small[:3] = torch.nn.functional.normalize(small[:3], dim=0)
+    return small
+
+
+def evaluation_offsets(count: int, seed: int, fov: float) -> torch.Tensor:
+    """The seeded hand-held offsets of the evaluation inputs, one per material, (count, 2)."""
+    from .data.synth import sample_offsets
+
+    return sample_offsets(count, torch.Generator().manual_seed(seed), fov)
+
+
+def score(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, views: torch.Tensor, convention: str,
+          lpips: LPIPS | None = None, cross_check: bool = False) -> dict[str, torch.Tensor]:
+    """Per-material metrics of predictions (N, 10, H, W) against the truth."""
+    result = {f"maps_{k}": v for k, v in map_rmse(predicted, truth).items()}
+    rmse, flips, ssims, lpipses, torch_rmse = [], [], [], [], []
+    for index in range(len(truth)):
+        a = rerender(predicted[index:index + 1], lights, views, convention)[0]
+        b = rerender(truth[index:index + 1], lights, views, convention)[0]
+        rmse.append(((a - b) ** 2).mean().sqrt())
+        flips.append(flip(a, b).mean())
+        ssims.append(ssim(a, b).mean())
+        if lpips is not None:
+            lpipses.append(lpips(a, b).mean())
+        if cross_check:
+            ta = rerender(predicted[index:index + 1], lights, views, convention, backend="torch")[0]
+            tb = rerender(truth[index:index + 1], lights, views, convention, backend="torch")[0]
+            torch_rmse.append(((ta - tb) ** 2).mean().sqrt())
+    result.update(render_rmse=torch.stack(rmse), render_flip=torch.stack(flips), render_ssim=torch.stack(ssims))
+    if lpips is not None:
+        result["render_lpips"] = torch.stack(lpipses)
+    if cross_check:
+        result["render_rmse_torch"] = torch.stack(torch_rmse)
+    return result
+
+
+def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine_steps: int,
+                 progress: bool, label: str) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+    """Predictions (N, 10, H, W) without and (when ``refine_steps``) with refinement, from one search
+    and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
+    import time
+
+    from tqdm import tqdm
+
+    from .capture import CaptureConfig, maps_from_bases, predict, refine_global_bases, search_light
+
+    convention = model.config.convention
+    plain, refined_maps, details = [], [], []
+    for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
+        started = time.perf_counter()
+        photos, lights = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention)
+        if light == "search":
+            found, history, _ = search_light(model, photos[0], fov, CaptureConfig())
+            offset = torch.tensor(found)
+        else:
+            offset, history = offsets[index], []
+        position = geometry.light_positions(offset.view(1, 2), fov)
+        output = predict(model, photos, position, fov)
+        plain.append(output.maps.cpu())
+        seconds = time.perf_counter() - started
+        refine_seconds = 0.0
+        if refine_steps and output.weights is not None:
+            started = time.perf_counter()
+            refined, _ = refine_global_bases(output, photos[0], position[0], fov, convention, steps=refine_steps)
+            refined_maps.append(maps_from_bases(output, refined).cpu())
+            refine_seconds = time.perf_counter() - started
+        details.append({"light_error_deg": light_error_deg(offset.tolist(), offsets[index].tolist(), fov),
+                        "search_passes": len(history), "seconds": seconds, "refine_seconds": refine_seconds})
+    return torch.cat(plain), (torch.cat(refined_maps) if refined_maps else None), details
+
+
+def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
+    """Evaluate a model (and baselines) on a dataset; writes OUT and returns the summary."""
+    import time
+
+    from .model.checkpoint import load_model
+
+    started = time.perf_counter()
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    names, truth, skipped = load_evaluation_set(config.data, config.format)
+    if config.limit:
+        names, truth = names[:config.limit], truth[:config.limit]
+    model = load_model(config.model)
+    convention = model.config.convention
+    offsets = evaluation_offsets(len(truth), config.seed, config.fov)
+    lights, views = random_lights_and_views(RERENDER_COUNT, config.seed)
+    weights = LPIPS.weight_files()
+    lpips = LPIPS(weights[0], weights[1]) if weights[2] is None else None
+    notes = [weights[2]] if weights[2] else []
+
+    rows: dict[str, dict] = {}
+    per_material: dict[str, dict] = {}
+    predictions = {}
+    steps = config.refine_steps or (500 if config.baselines else 0)
+    plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model")
+    light_error = float(np.mean([d["light_error_deg"] for d in details]))
+    seconds = float(sum(d["seconds"] for d in details))
+    unrefined_row, refined_row = "model (no refinement)", f"model + refinement ({steps} steps)"
+    if refined is None or config.baselines:
+        predictions[unrefined_row] = plain
+        rows[unrefined_row] = {"seconds": seconds, "light_error_deg": light_error}
+    if refined is not None:
+        predictions[refined_row] = refined
+        rows[refined_row] = {"seconds": seconds + float(sum(d["refine_seconds"] for d in details)),
+                             "light_error_deg": light_error}
+    main_row = refined_row if config.refine_steps else unrefined_row
+    for row, predicted in predictions.items():
+        per_material[row] = score(predicted, truth, lights, views, convention, lpips, cross_check=row == main_row)
+    if config.baselines:
+        predictions["trivial"] = trivial_baseline(truth).expand_as(truth)
+        per_material["trivial"] = score(predictions["trivial"], truth, lights, views, convention, lpips)
+        rows["trivial"] = {"seconds": 0.0}
+        if config.direct_model:
+            direct = load_model(config.direct_model)
+            start = time.perf_counter()
+            predictions["direct (no bases)"], _, _ = _predict_all(direct, truth, offsets, config.fov, "known", 0, progress,
+                                                                  "direct")
+            rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
+            per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention, lpips)
+        else:
+            notes.append("the direct per-pixel baseline needs --direct-model (a checkpoint trained with --no-bases)")
+    for row, metrics in per_material.items():
+        rows[row].update({key: float(value.mean()) for key, value in metrics.items()})
+
+    main = rows[main_row]
+    summary = {"n_materials": len(truth), "skipped": skipped, "data": str(config.data), "format": config.format,
+               "model": config.model or "shipped", "convention": convention, "light": config.light,
+               "refine_steps": config.refine_steps, "row": main_row,
+               "maps_rmse": {k: main[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
+               "render_rmse": main["render_rmse"], "render_flip": main["render_flip"], "render_ssim": main["render_ssim"],
+               "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),
+               "light_error_deg": main.get("light_error_deg"), "rows": rows, "notes": notes, "seed": config.seed}
+    if config.lighting:
+        summary["lighting"] = lighting_accuracy(model, truth, config, out, progress)
+    summary["seconds"] = time.perf_counter() - started
+    write_evaluation(out, summary, names, per_material, predictions, truth, main_row)
+    return summary
+
+
+#: The paper's DeepBasis map RMSE (its 122 test scenes), for tables.
+PAPER_DEEPBASIS = {"normal": 0.053, "diffuse": 0.031, "roughness": 0.162, "specular": 0.043}
+
+#: Roughness groups of the lighting-accuracy table: upper bounds of the mean roughness.
+ROUGHNESS_GROUPS = {"low": 0.33, "medium": 0.66, "high": 1.01}
+
+
+def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out: Path, progress: bool,
+                      offsets_per_material: int = 10, angles: int = 7) -> dict:
+    """The search's angular error by roughness group, and map and re-rendering RMSE against the offset angle."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from tqdm import tqdm
+
+    from .capture import CaptureConfig, predict, search_light
+    from .data.synth import sample_offsets
+
+    convention = model.config.convention
+    errors = {group: [] for group in ROUGHNESS_GROUPS}
+    for index in tqdm(range(len(truth)), desc="lighting search", unit="material", disable=not progress):
+        roughness = float(truth[index, 6].mean())
+        group = next(g for g, bound in ROUGHNESS_GROUPS.items() if roughness < bound)
+        offsets = sample_offsets(offsets_per_material, torch.Generator().manual_seed(config.seed + 1000 + index), config.fov)
+        for offset in offsets:
+            photos, _ = flash_photos(truth[index:index + 1], offset.view(1, 2), config.fov, convention)
+            found, _, _ = search_light(model, photos[0], config.fov, CaptureConfig())
+            errors[group].append(light_error_deg(found, offset.tolist(), config.fov))
+    table = {group: {"count": len(v), "mean_deg": float(np.mean(v)) if v else None,
+                     "median_deg": float(np.median(v)) if v else None,
+                     "p90_deg": float(np.percentile(v, 90)) if v else None} for group, v in errors.items()}
+    everything = sum(errors.values(), [])
+    table["all"] = {"count": len(everything), "mean_deg": float(np.mean(everything)),
+                    "median_deg": float(np.median(everything)), "p90_deg": float(np.percentile(everything, 90))}
+
+    generator = torch.Generator().manual_seed(config.seed + 7)
+    directions = torch.rand(len(truth), generator=generator) * 2 * math.pi
+    height = constants.camera_height(config.fov)
+    lights, views = random_lights_and_views(RERENDER_COUNT, config.seed)
+    robustness = []
+    for angle in tqdm(np.linspace(0.0, constants.MAX_OFFSET_DEG, angles), desc="robustness", disable=not progress):
+        radius = height * math.tan(math.radians(float(angle)))
+        offsets = torch.stack([radius * torch.cos(directions), radius * torch.sin(directions)], -1)
+        maps_rmse, render_rmse = [], []
+        for index in range(len(truth)):
+            photos, lights_true = flash_photos(truth[index:index + 1], offsets[index:index + 1], config.fov, convention)
+            position = lights_true
+            if config.light == "search":
+                found, _, _ = search_light(model, photos[0], config.fov, CaptureConfig())
+                position = geometry.light_positions(torch.tensor([found]), config.fov)
+            predicted = predict(model, photos, position, config.fov).maps.cpu()
+            rmse = map_rmse(predicted, truth[index:index + 1])
+            maps_rmse.append(float(sum(v[0] for v in rmse.values()) / 4))
+            render_rmse.append(float(rerender_rmse(predicted, truth[index:index + 1], lights, views, convention)[0]))
+        robustness.append({"angle_deg": float(angle), "maps_rmse_mean": float(np.mean(maps_rmse)),
+                           "render_rmse": float(np.mean(render_rmse))})
+
+    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
+    groups = [g for g in ROUGHNESS_GROUPS if errors[g]]
+    left.boxplot([errors[g] for g in groups], tick_labels=[f"{g}\n(n={len(errors[g])})" for g in groups])
+    left.set_ylabel("angular error of the found flash [deg]")
+    left.set_title("lighting search by roughness group")
+    right.plot([r["angle_deg"] for r in robustness], [r["maps_rmse_mean"] for r in robustness], "o-", label="maps RMSE (mean of 4)")
+    right.plot([r["angle_deg"] for r in robustness], [r["render_rmse"] for r in robustness], "s-", label="re-rendering RMSE")
+    right.set_xlabel("flash offset [deg]")
+    right.set_title(f"robustness to the offset (light {config.light})")
+    right.legend()
+    figure.tight_layout()
+    from .reporting import _save_figure
+
+    _save_figure(figure, out / "lighting.png")
+    return {"search_error_by_roughness": table, "robustness": robustness, "figure": "lighting.png",
+            "offsets_per_material": offsets_per_material}
+
+
+def write_evaluation(out: Path, summary: dict, names: list[str], per_material: dict, predictions: dict,
+                     truth: torch.Tensor, main_row: str) -> None:
+    """summary.json, per_material.csv, table.md, bars.png and gallery.png in ``out`` (each written atomically)."""
+    import csv
+    import io
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .imageio import write_bytes, write_image
+    from .reporting import _save_figure, map_tiles
+
+    write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
+    metrics = sorted({key for values in per_material.values() for key in values})
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["material", "row"] + metrics)
+    for row, values in per_material.items():
+        for index, name in enumerate(names):
+            writer.writerow([name, row] + [f"{float(values[m][index]):.6f}" if m in values else "" for m in metrics])
+    write_bytes(out / "per_material.csv", buffer.getvalue().encode())
+
+    columns = [("maps_normal", "normal"), ("maps_diffuse", "diffuse"), ("maps_roughness", "roughness"),
+               ("maps_specular", "specular"), ("render_rmse", "render RMSE"), ("render_flip", "FLIP"),
+               ("render_ssim", "SSIM"), ("render_lpips", "LPIPS"), ("seconds", "time [s]")]
+    lines = ["| method | " + " | ".join(title for _, title in columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    for row, values in summary["rows"].items():
+        cells = [f"{values[key]:.4f}" if isinstance(values.get(key), float) and key != "seconds"
+                 else f"{values[key]:.1f}" if key == "seconds" and key in values else "-" for key, _ in columns]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    lines.append("| paper DeepBasis (122 scenes) | " + " | ".join(
+        [f"{PAPER_DEEPBASIS[k]:.3f}" for k in ("normal", "diffuse", "roughness", "specular")] + ["-"] * 5) + " |")
+    header = (f"Evaluation on {summary['n_materials']} materials of {summary['data']} ({summary['format']}), "
+              f"light {summary['light']}, convention {summary['convention']}, seed {summary['seed']}. Map RMSE in the "
+              "stored encoding; re-rendering under 30 random lights and views per material, clipped sRGB.\n\n")
+    write_bytes(out / "table.md", (header + "\n".join(lines) + "\n").encode())
+
+    rows = list(summary["rows"])
+    figure, axes = plt.subplots(1, 6, figsize=(20, 3.6))
+    for axis, (key, title) in zip(axes, columns[:7]):
+        values = [summary["rows"][r].get(key, float("nan")) for r in rows]
+        axis.bar(range(len(rows)), values, color=[f"C{i}" for i in range(len(rows))])
+        axis.set_xticks(range(len(rows)), [r.replace(" (", "\n(") for r in rows], fontsize=6, rotation=30)
+        axis.set_title(title)
+    figure.tight_layout()
+    _save_figure(figure, out / "bars.png")
+
+    order = np.argsort(per_material[main_row]["render_rmse"].numpy())
+    picks = list(order[:4]) + list(order[-4:])
+    strips = []
+    for index in picks:
+        tiles = map_tiles(truth[index]) + map_tiles(predictions[main_row][index])
+        strips.append(np.concatenate(tiles, axis=1))
+    write_image(out / "gallery.png", np.clip(np.concatenate(strips, axis=0), 0, 1))
