@@ -84,6 +84,10 @@ class NetworkConfig:
     input_channels: int = 9
     """Channels of the network input."""
 
+    plane_extent: float = 1.0
+    """Half-width of the sample the camera frames [patch half-widths] for the error map's render:
+    1 in this project; 384 / 383 for the authors' networks, whose pixels sit 3 / 383 apart."""
+
     @property
     def stride(self) -> int:
         """Input sizes must be multiples of this [pixels]."""
@@ -117,11 +121,13 @@ def to_signed(maps: torch.Tensor, dim: int = 1) -> torch.Tensor:
     return torch.cat([normal, rest * 2.0 - 1.0], dim=dim)
 
 
-def to_maps(signed: torch.Tensor, dim: int = 1) -> torch.Tensor:
-    """Signed parameters to maps along ``dim``: unit normals with z >= 0, others clipped to [0, 1]."""
+def to_maps(signed: torch.Tensor, dim: int = 1, upper_hemisphere: bool = True) -> torch.Tensor:
+    """Signed parameters to maps along ``dim``: unit normals (with z >= 0 unless
+    ``upper_hemisphere`` is False), others clipped to [0, 1]."""
     normal, rest = signed.split([3, 7], dim=dim)
-    x, y, z = normal.split(1, dim=dim)
-    normal = torch.cat([x, y, z.clamp(min=0.0)], dim=dim)
+    if upper_hemisphere:
+        x, y, z = normal.split(1, dim=dim)
+        normal = torch.cat([x, y, z.clamp(min=0.0)], dim=dim)
     normal = normal / (normal * normal).sum(dim=dim, keepdim=True).clamp(min=1e-12).sqrt()
     return torch.cat([normal, (rest * 0.5 + 0.5).clamp(0.0, 1.0)], dim=dim)
 
@@ -171,17 +177,25 @@ class Encoder(nn.Module):
         self.global_size = global_sizes[-1]
 
     def forward(self, x: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
-        """Returns the outputs of every level and the final global features (B, global_size)."""
+        """Returns the outputs of every level and the final global features (B, global_size).
+
+        Every level but the bottleneck is returned after the leaky ReLU that the next level
+        applies to it, so the decoder's skip connections see activated features (as in the
+        published network, whose in-place activation does this); the bottleneck is returned raw.
+        """
         levels = []
         global_features = F.selu(self.global_fcs[0](x.mean(dim=(2, 3))))
+        last = len(self.convs) - 1
         for index, conv in enumerate(self.convs):
-            x = conv(x if index == 0 else F.leaky_relu(x, 0.2))
+            x = conv(x)
             if index > 0:
                 mean = torch.cat([global_features, x.mean(dim=(2, 3))], dim=1)
-                if index < len(self.convs) - 1:
+                if index < last:
                     x = self.norms[index - 1](x)
                 x = x + self.global_to_maps[index - 1](global_features)[:, :, None, None]
                 global_features = F.selu(self.global_fcs[index](mean))
+            if index < last:
+                x = F.leaky_relu(x, 0.2)
             levels.append(x)
         return levels, global_features
 
@@ -312,9 +326,11 @@ class DeepBasisNet(nn.Module):
             raise ValueError("the local unit needs the flash positions (lights) for its error map")
         from ..render import render_flash
 
-        global_maps = to_maps(blend(weights, global_bases))
+        # The renderer takes the blended normal as it is (a normal below the surface renders black).
+        global_maps = to_maps(blend(weights, global_bases), upper_hemisphere=False)
         photo = inputs[:, :3] * 0.5 + 0.5
-        rendered = render_flash(global_maps, lights.view(batch, 1, 3), fov=fov, convention=config.convention)[:, 0]
+        rendered = render_flash(global_maps, lights.view(batch, 1, 3), fov=fov, convention=config.convention,
+                                extent=config.plane_extent)[:, 0]
         error = rendered.clamp(0.0, 1.0) - photo
         # The global bases enter as constant planes (N x 10 channels) without being built.
         local_inputs = torch.cat([inputs, error, weights], dim=1)

@@ -118,7 +118,7 @@ from . import bsdf  # noqa: E402  (registers the plugin once the variant is set)
 
 
 def render_flash(maps, lights, *, fov: float | None = None, convention: str | None = None,
-                 intensity: float | None = None, backend: str = "mitsuba", views=None):
+                 intensity: float | None = None, backend: str = "mitsuba", views=None, extent: float = 1.0):
     """The flash renderer every part of the pipeline calls: per pixel, batched, differentiable.
 
     Args:
@@ -131,6 +131,8 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
             independent reference, for cross-checks).
         views: (B, K, 3) viewpoints apart from the lights (re-rendering metrics), or None: the
             camera sits at the light, as in a flash capture.
+        extent: half-width of the framed sample [patch half-widths] (1 here; the authors'
+            networks see 384 / 383).
 
     Returns:
         linear radiance, (B, K, 3, H, W).
@@ -144,4 +146,4 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
     renderers = {"mitsuba": bridge.render_flash, "torch": reference.render_flash}
     if backend not in renderers:
         raise ValueError(f"unknown render backend {backend!r}; expected one of {sorted(renderers)}")
-    return renderers[backend](maps, lights, intensity, convention, views=views)
+    return renderers[backend](maps, lights, intensity, convention, views=views, extent=extent)

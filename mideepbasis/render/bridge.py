@@ -27,13 +27,13 @@ def flash_renderer(convention: str) -> FlashRenderer:
 
 
 @dr.wrap(source="torch", target="drjit")
-def _render_flash_drjit(normal, diffuse, roughness, specular, lights, views, intensity, batch, convention):
+def _render_flash_drjit(normal, diffuse, roughness, specular, lights, views, intensity, batch, convention, extent):
     renderer = flash_renderer(convention)
     renderer.set_maps(normal, diffuse, roughness, specular)
     height, width = normal.shape[0] // batch, normal.shape[1]
     positions = dr.unravel(mi.Point3f, lights.array)
     viewpoints = None if views is None else dr.unravel(mi.Point3f, views.array)
-    return renderer.render(positions, batch, height, width, mi.Float(intensity.array), viewpoints)
+    return renderer.render(positions, batch, height, width, mi.Float(intensity.array), viewpoints, extent)
 
 
 def _to_texture(maps: torch.Tensor) -> torch.Tensor:
@@ -43,7 +43,8 @@ def _to_texture(maps: torch.Tensor) -> torch.Tensor:
 
 
 def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
-                 convention: str = constants.DEFAULT_CONVENTION, views: torch.Tensor | None = None) -> torch.Tensor:
+                 convention: str = constants.DEFAULT_CONVENTION, views: torch.Tensor | None = None,
+                 extent: float = 1.0) -> torch.Tensor:
     """Per-pixel flash render through the Mitsuba ``svbrdf`` plugin, differentiable in torch.
 
     Args:
@@ -66,5 +67,6 @@ def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
     flat_views = None if views is None else views.float().reshape(batch * n_lights, 3)
     image = _render_flash_drjit(_to_texture(normal), _to_texture(diffuse), _to_texture(roughness),
                                 _to_texture(specular), lights.float().reshape(batch * n_lights, 3), flat_views,
-                                torch.tensor([float(intensity)], device=maps.device), batch, convention)
+                                torch.tensor([float(intensity)], device=maps.device), batch, convention,
+                                float(extent))
     return image.permute(0, 1, 4, 2, 3).to(maps.dtype)

@@ -51,13 +51,15 @@ class FlashRenderer:
         self.params.update()
 
     def render(self, lights: mi.Point3f, batch: int, height: int, width: int,
-               intensity: float | mi.Float, views: mi.Point3f | None = None) -> mi.TensorXf:
+               intensity: float | mi.Float, views: mi.Point3f | None = None, extent: float = 1.0) -> mi.TensorXf:
         """Render every loaded material under its lights.
 
         Args:
             lights: B*K flash positions [patch half-widths], light k of material b at index b*K + k.
             views: B*K viewpoints (one per light) for re-renderings where camera and light are
                 apart; None: co-located with the lights (the flash capture).
+            extent: half-width of the framed sample [patch half-widths]: pixel (i, j) sees
+                extent * (-1 + (2j + 1) / w, 1 - (2i + 1) / h, 0).
             batch: number B of stacked materials; the loaded maps have B*height rows.
             height, width: image size h, w [pixels].
             intensity: radiant intensity of the flash [W/sr] (``physical``) or lamp intensity
@@ -79,8 +81,8 @@ class FlashRenderer:
         material = light_index // per_material
         row_f, col_f = mi.Float(row), mi.Float(col)
 
-        point = mi.Point3f(dr.fma(2.0, col_f, 1.0) / width - 1.0,
-                           1.0 - dr.fma(2.0, row_f, 1.0) / height, 0.0)
+        point = mi.Point3f(extent * (dr.fma(2.0, col_f, 1.0) / width - 1.0),
+                           extent * (1.0 - dr.fma(2.0, row_f, 1.0) / height), 0.0)
         to_light = dr.gather(mi.Point3f, lights, light_index) - point
         direction = dr.normalize(to_light)
         to_view = direction if views is None else dr.normalize(dr.gather(mi.Point3f, views, light_index) - point)

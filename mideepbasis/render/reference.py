@@ -77,7 +77,8 @@ def eval_cosine(convention: str, normal: torch.Tensor, wi: torch.Tensor, wo: tor
 
 
 def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
-                 convention: str = constants.DEFAULT_CONVENTION, views: torch.Tensor | None = None) -> torch.Tensor:
+                 convention: str = constants.DEFAULT_CONVENTION, views: torch.Tensor | None = None,
+                 extent: float = 1.0) -> torch.Tensor:
     """Per-pixel flash render of a batch of materials under co-located camera and flash.
 
     Args:
@@ -92,7 +93,7 @@ def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
     """
     height, width = maps.shape[-2:]
     normal, diffuse, roughness, specular = (m.unsqueeze(1) for m in torch.split(maps, [3, 3, 1, 3], dim=1))
-    points = pixel_points(height, width, maps.device, maps.dtype)
+    points = pixel_points(height, width, maps.device, maps.dtype) * extent
     to_light = lights[..., :, None, None] - points  # (B, K, 3, H, W)
     distance2 = (to_light**2).sum(dim=-3, keepdim=True)
     direction = to_light / torch.sqrt(distance2)
