@@ -149,9 +149,12 @@ def field_of_view_from_focal(focal_35mm: float, width: int, height: int) -> floa
     return math.degrees(2.0 * math.atan(math.tan(half_diagonal) * side))
 
 
-def load_photo(path: str | Path, fov: float | None = None,
-               resolution: int | str = constants.DEFAULT_RESOLUTION) -> tuple[torch.Tensor, float, str, list[str]]:
+def load_photo(path: str | Path, fov: float | None = None, resolution: int | str = constants.DEFAULT_RESOLUTION,
+               decoding: str = "srgb") -> tuple[torch.Tensor, float, str, list[str]]:
     """Read a flash photo for capture.
+
+    ``decoding`` turns 8/16-bit values into linear ones: ``srgb`` (the IEC curve) or ``gamma2.2``
+    (the authors' networks were given x^2.2). EXR photos are linear already.
 
     Returns:
         (photo (3, R, R) linear, field of view [deg], its source, notes).
@@ -160,7 +163,9 @@ def load_photo(path: str | Path, fov: float | None = None,
         InputError: unreadable, not an image, smaller than 64 pixels.
     """
     path = Path(path)
-    image = read_image(path, decode_srgb=True)
+    image = read_image(path, decode_srgb=decoding == "srgb")
+    if decoding == "gamma2.2" and path.suffix.lower() != ".exr":
+        image = image**2.2
     height, width = image.shape[:2]
     notes = []
     if min(height, width) < MIN_PHOTO_SIZE:
@@ -217,7 +222,7 @@ def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
     height, width = photos.shape[-2:]
     stride = model.config.stride
     pad_h, pad_w = (-height) % stride, (-width) % stride
-    mark = lighting_mark(lights, height, width, fov, model.config.convention)
+    mark = lighting_mark(lights, height, width, fov, model.config.convention, model.config.plane_extent)
     inputs = network_input(photos, mark)
     if pad_h or pad_w:
         inputs = F.pad(inputs, (0, pad_w, 0, pad_h), mode="reflect")
@@ -265,7 +270,7 @@ def candidate_offsets(fov: float, max_offset_deg: float, grid: int, centre=(0.0,
 
 
 def light_objective(maps: torch.Tensor, photo: torch.Tensor, offsets: torch.Tensor, fov: float, convention: str,
-                    batch: int = 64) -> torch.Tensor:
+                    batch: int = 64, extent: float = 1.0) -> torch.Tensor:
     """Mean L1 between the photo and the clipped rendering of ``maps`` under each candidate, (K,).
 
     Args:
@@ -278,7 +283,7 @@ def light_objective(maps: torch.Tensor, photo: torch.Tensor, offsets: torch.Tens
     with torch.no_grad():
         for first in range(0, len(lights), batch):
             chunk = lights[first:first + batch].unsqueeze(0)
-            rendered = render_flash(maps, chunk, fov=fov, convention=convention)[0].clamp(0.0, 1.0)
+            rendered = render_flash(maps, chunk, fov=fov, convention=convention, extent=extent)[0].clamp(0.0, 1.0)
             errors.append((rendered - photo).abs().mean(dim=(1, 2, 3)))
     return torch.cat(errors)
 
@@ -295,7 +300,7 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
     for index in range(config.search_passes):
         output = predict(model, photo[None], geometry.light_positions(current[None], fov), fov)
         small_maps = _downsample_maps(output.maps.cpu(), config.search_resolution)
-        errors = light_objective(small_maps, small_photo, candidates, fov, convention)
+        errors = light_objective(small_maps, small_photo, candidates, fov, convention, extent=model.config.plane_extent)
         best = candidates[int(torch.argmin(errors))]
         history.append({"pass": index + 1, "offset": current.tolist(), "best_candidate": best.tolist(),
                         "objective": float(errors.min())})
@@ -305,7 +310,7 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
     # A finer grid around the last candidate, with the material of the last pass.
     step = 2 * geometry.max_offset(fov, config.max_offset_deg) / max(1, config.search_grid - 1)
     fine = candidate_offsets(fov, config.max_offset_deg, 9, centre=tuple(current.tolist()), span=step)
-    errors = light_objective(small_maps, small_photo, fine, fov, convention)
+    errors = light_objective(small_maps, small_photo, fine, fov, convention, extent=model.config.plane_extent)
     current = fine[int(torch.argmin(errors))]
     history.append({"pass": "fine", "offset": current.tolist(), "objective": float(errors.min())})
     return (float(current[0]), float(current[1])), history, output
@@ -316,7 +321,7 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
 
 def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: torch.Tensor, fov: float,
                         convention: str, steps: int = 500, resolution: int = 64, lr: float = 0.01,
-                        progress: bool = False) -> tuple[torch.Tensor, list[float]]:
+                        progress: bool = False, extent: float = 1.0) -> tuple[torch.Tensor, list[float]]:
     """Optimise the global bases so the rendering matches the photo; weights and deviations stay fixed.
 
     Args:
@@ -346,7 +351,7 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
         for _ in tqdm(range(steps), desc="refining", unit="step", disable=not progress):
             bases = normalize_basis_normals(global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
             maps = to_maps(blend(weights, bases))
-            rendered = render_flash(maps, lights, fov=fov, convention=convention)[:, 0].clamp(0.0, 1.0)
+            rendered = render_flash(maps, lights, fov=fov, convention=convention, extent=extent)[:, 0].clamp(0.0, 1.0)
             loss = (rendered - target).abs().mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -403,11 +408,17 @@ def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path |
     timings["model"] = time.perf_counter() - start
 
     start = time.perf_counter()
+    document = getattr(model, "checkpoint", {}) or {}
+    trained_fov = document.get("fov_deg")
+    requested_fov = config.fov if config.fov is not None else trained_fov
     if isinstance(image, torch.Tensor):
         photo = image.float().clamp(0, 1)
-        fov, source, notes = (config.fov, "argument", []) if config.fov else (constants.DEFAULT_FOV_DEG, "default", [])
+        fov, source, notes = ((requested_fov, "argument", []) if requested_fov else (constants.DEFAULT_FOV_DEG, "default", []))
     else:
-        photo, fov, source, notes = load_photo(image, config.fov, config.resolution)
+        photo, fov, source, notes = load_photo(image, requested_fov, config.resolution,
+                                               decoding=document.get("photo_decoding", "srgb"))
+    if trained_fov and abs(fov - trained_fov) > 1.0:
+        notes.append(f"this model was trained for a {trained_fov:g} deg field of view, the photo has {fov:.1f} deg")
     timings["photo"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -427,7 +438,8 @@ def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path |
     if config.refine_steps > 0 and output.weights is not None:
         start = time.perf_counter()
         refined, losses = refine_global_bases(output, photo, light, fov, model.config.convention, config.refine_steps,
-                                              config.refine_resolution, config.refine_lr, progress)
+                                              config.refine_resolution, config.refine_lr, progress,
+                                              extent=model.config.plane_extent)
         output.global_bases = refined.to(output.global_bases)
         maps = maps_from_bases(output, refined).cpu()
         timings["refine"] = time.perf_counter() - start

@@ -8,6 +8,7 @@
     mideepbasis data preview [--n 64] [--seed S] [--family NAME] [--tileable] -o SHEET.png
     mideepbasis evaluate --data PATH --format deschaintre5|deschaintre4|folder [--model PATH]
                          [--light known|search] [--refine-steps K] [--baselines] [--lighting] -o OUT
+    mideepbasis import-weights GLOBAL.pth LOCAL.pth --fov 45 -o model.safetensors
     mideepbasis train --preset compact --data procedural [--data FOLDER ...] --steps N --batch B --out runs/NAME [--resume]
 """
 
@@ -254,6 +255,26 @@ def _run_evaluate(args) -> None:
           f"wrote {args.output}")
 
 
+def _add_import_weights(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "import-weights", help="import the DeepBasis authors' published weights",
+        description="Map the authors' net_g_*.pth and net_l_*.pth (PyTorch state dicts, loaded without unpickling "
+                    "code) onto the paper preset and write a mideepbasis checkpoint (deepbasis shading convention).")
+    parser.add_argument("global_weights", type=Path, metavar="GLOBAL.pth")
+    parser.add_argument("local_weights", type=Path, metavar="LOCAL.pth")
+    parser.add_argument("--fov", type=float, required=True,
+                        help="field of view the weights were trained for [deg]: 45 for *_2.414.pth, 28.07 for *_4.pth")
+    parser.add_argument("-o", "--output", type=Path, required=True, metavar="model.safetensors")
+    parser.set_defaults(run=_run_import_weights)
+
+
+def _run_import_weights(args) -> None:
+    from .model.checkpoint import import_authors_weights
+
+    path = import_authors_weights(args.global_weights, args.local_weights, args.fov, args.output)
+    print(f"wrote {path}: use it with --model in capture and evaluate")
+
+
 def _add_train(subparsers) -> None:
     from .train import TrainConfig
 
@@ -316,6 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_demo(subparsers)
     _add_data(subparsers)
     _add_evaluate(subparsers)
+    _add_import_weights(subparsers)
     _add_train(subparsers)
     return parser
 

@@ -110,7 +110,7 @@ def trivial_baseline(materials: torch.Tensor) -> torch.Tensor:
 
 
 def flash_photos(maps: torch.Tensor, offsets: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG,
-                 convention: str = constants.DEFAULT_CONVENTION) -> tuple[torch.Tensor, torch.Tensor]:
+                 convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
     """The evaluation inputs: 8-bit sRGB photos of ``maps`` (B, 10, H, W) under flashes at lateral
     ``offsets`` (B, 2) [patch half-widths], no noise. Returns (photos (B, 3, H, W) linear, lights (B, 3))."""
     from .data.synth import SynthesisConfig, simulate_photo
@@ -118,7 +118,7 @@ def flash_photos(maps: torch.Tensor, offsets: torch.Tensor, fov: float = constan
 
     lights = geometry.light_positions(offsets, fov)
     with torch.no_grad():
-        radiance = render_flash(maps, lights.view(-1, 1, 3), fov=fov, convention=convention)[:, 0]
+        radiance = render_flash(maps, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
     quiet = SynthesisConfig(shot_noise=(1e-30, 1e-30), read_noise=(1e-30, 1e-30), quantize=True)
     photos = simulate_photo(radiance, torch.Generator().manual_seed(0), quiet, gains=torch.ones(maps.shape[0], 3))
     return photos, lights
@@ -371,7 +371,8 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
-        photos, lights = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention)
+        photos, lights = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention,
+                                      model.config.plane_extent)
         if light == "search":
             found, history, _ = search_light(model, photos[0], fov, CaptureConfig())
             offset = torch.tensor(found)
@@ -384,7 +385,8 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
         refine_seconds = 0.0
         if refine_steps and output.weights is not None:
             started = time.perf_counter()
-            refined, _ = refine_global_bases(output, photos[0], position[0], fov, convention, steps=refine_steps)
+            refined, _ = refine_global_bases(output, photos[0], position[0], fov, convention, steps=refine_steps,
+                                             extent=model.config.plane_extent)
             refined_maps.append(maps_from_bases(output, refined).cpu())
             refine_seconds = time.perf_counter() - started
         details.append({"light_error_deg": light_error_deg(offset.tolist(), offsets[index].tolist(), fov),

@@ -174,7 +174,7 @@ def log_compress(photo: torch.Tensor, eps: float = LOG_EPS) -> torch.Tensor:
 
 
 def lighting_mark(lights: torch.Tensor, height: int, width: int, fov: float = constants.DEFAULT_FOV_DEG,
-                  convention: str = constants.DEFAULT_CONVENTION) -> torch.Tensor:
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
     """The lighting-mark image: the fixed reference material rendered under each light, clipped to [0, 1].
 
     Args:
@@ -187,7 +187,7 @@ def lighting_mark(lights: torch.Tensor, height: int, width: int, fov: float = co
 
     reference = geometry.lighting_mark_material(height, width).to(lights).expand(lights.shape[0], -1, -1, -1)
     with torch.no_grad():
-        image = render_flash(reference, lights.view(-1, 1, 3), fov=fov, convention=convention)[:, 0]
+        image = render_flash(reference, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
     return image.clamp(0.0, 1.0)
 
 

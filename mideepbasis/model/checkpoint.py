@@ -145,3 +145,119 @@ def shipped_model_path() -> Path:
     if not path.is_file():
         raise CheckpointError(f"{path}: the shipped model is missing from this installation")
     return path
+
+
+# --- the authors' published weights ------------------------------------------------------------------
+
+#: Half-width of the sample the authors' networks see [patch half-widths]: their 256-pixel crops of
+#: a 384-pixel grid over [-1.5, 1.5] put pixels 3 / 383 apart.
+AUTHORS_PLANE_EXTENT = 384.0 / 383.0
+
+
+def authors_name_map(config: NetworkConfig) -> dict[str, str]:
+    """Our state-dict name for every tensor of the authors' GlobalNet and LocalNet state dicts.
+
+    Their global network nests everything under ``basisNet``: ``en_convs`` (the first a bare
+    convolution, the others after a leaky ReLU), ``en_fcs`` / ``en_g2e_fcs`` / ``en_ins_norms``
+    (the global track and instance norms), ``weight_net.{deconv,fcs,f2c,ins}`` (the decoder) and
+    ``basis_net`` (the MLP). Their local network is a NAFNet with the same names as ours.
+    """
+    names = {}
+    levels = len(config.encoder_channels)
+    for i in range(levels):
+        source = f"basisNet.en_convs.{i}." if i == 0 else f"basisNet.en_convs.{i}.1."
+        for kind in ("weight", "bias"):
+            names[source + kind] = f"encoder.convs.{i}.{kind}"
+            names[f"basisNet.en_fcs.{i}.0.{kind}"] = f"encoder.global_fcs.{i}.{kind}"
+    for i in range(levels - 1):
+        names[f"basisNet.en_g2e_fcs.{i}.weight"] = f"encoder.global_to_maps.{i}.weight"
+    for i in range(levels - 2):
+        for kind in ("weight", "bias"):
+            names[f"basisNet.en_ins_norms.{i}.{kind}"] = f"encoder.norms.{i}.{kind}"
+    for i in range(levels):
+        for kind in ("weight", "bias"):
+            names[f"basisNet.weight_net.deconv.{i}.1.{kind}"] = f"weight_decoder.convs.{i}.0.{kind}"
+            names[f"basisNet.weight_net.deconv.{i}.2.{kind}"] = f"weight_decoder.convs.{i}.1.{kind}"
+        names[f"basisNet.weight_net.f2c.{i}.weight"] = f"weight_decoder.global_to_maps.{i}.weight"
+    for i in range(levels - 1):
+        for kind in ("weight", "bias"):
+            names[f"basisNet.weight_net.fcs.{i}.0.{kind}"] = f"weight_decoder.global_fcs.{i}.{kind}"
+            names[f"basisNet.weight_net.ins.{i}.{kind}"] = f"weight_decoder.norms.{i}.{kind}"
+    for i in range(config.mlp_hidden_layers + 1):
+        for kind in ("weight", "bias"):
+            names[f"basisNet.basis_net.{i}.0.{kind}"] = f"global_unit.{2 * i}.{kind}"
+    return names
+
+
+def _load_state_dict(path: Path) -> dict[str, torch.Tensor]:
+    """A state dict from a .pth file, without ever unpickling anything but tensors and containers."""
+    import pickle
+
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such weight file")
+    try:
+        loaded = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError) as error:
+        first = " ".join(str(error).split())[:160]
+        raise CheckpointError(f"{path}: not a PyTorch state dict that loads without unpickling code ({first})") from None
+    if isinstance(loaded, dict) and "params" in loaded and isinstance(loaded["params"], dict):
+        loaded = loaded["params"]
+    if not isinstance(loaded, dict) or not all(isinstance(v, torch.Tensor) for v in loaded.values()):
+        raise CheckpointError(f"{path}: not a state dict (a mapping of names to tensors)")
+    return {k[len("module."):] if k.startswith("module.") else k: v for k, v in loaded.items()}
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def import_authors_weights(global_path: str | os.PathLike, local_path: str | os.PathLike, fov: float,
+                           output: str | os.PathLike) -> Path:
+    """Map the authors' GlobalNet and LocalNet weights onto our ``paper`` preset and save a checkpoint.
+
+    Every tensor must land on a tensor of the same shape: none left over, none missing (the error
+    names the first). The checkpoint records the ``deepbasis`` shading convention, their framed
+    sample, the field of view the weights were trained for and the source files' SHA-256.
+
+    Args:
+        global_path, local_path: their ``net_g_*.pth`` and ``net_l_*.pth``.
+        fov: field of view the weights belong to [deg] (their ``fovZ`` 2.414 is 45 deg, 4 is 28.07).
+        output: the ``.safetensors`` file to write.
+    """
+    from .network import preset
+
+    global_path, local_path = Path(global_path), Path(local_path)
+    config = preset("paper", convention="deepbasis", plane_extent=AUTHORS_PLANE_EXTENT)
+    model = DeepBasisNet(config)
+    expected = model.state_dict()
+    names = authors_name_map(config)
+    mapped = {}
+    for path, prefix in ((global_path, None), (local_path, "local_unit.")):
+        state = _load_state_dict(path)
+        for name, tensor in state.items():
+            target = names.get(name) if prefix is None else prefix + name
+            if target is None or target not in expected:
+                raise CheckpointError(f"{path}: tensor {name} has no place in the paper network")
+            if tuple(tensor.shape) != tuple(expected[target].shape):
+                raise CheckpointError(f"{path}: tensor {name} has shape {tuple(tensor.shape)}, the paper network's "
+                                      f"{target} has {tuple(expected[target].shape)}")
+            mapped[target] = tensor.float()
+    missing = [name for name in expected if name not in mapped]
+    if missing:
+        inverse = {ours: theirs for theirs, ours in names.items()}
+        first = inverse.get(missing[0], missing[0].removeprefix("local_unit."))
+        source = local_path if missing[0].startswith("local_unit.") else global_path
+        raise CheckpointError(f"{source}: tensor {first} is missing ({len(missing)} missing in all)")
+    model.load_state_dict(mapped)
+    provenance = {"source": "DeepBasis authors' published weights", "global_file": global_path.name,
+                  "local_file": local_path.name, "global_sha256": _sha256(global_path),
+                  "local_sha256": _sha256(local_path)}
+    return save_checkpoint(output, model, metadata={"fov_deg": float(fov), "photo_decoding": "gamma2.2",
+                                                    "provenance": provenance,
+                                                    "training": {"data": ["DeepBasis authors' training set"]}})

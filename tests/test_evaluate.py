@@ -1,0 +1,105 @@
+"""Evaluation: metrics against hand-computed cases, seeded reproducibility, shared lights, skipped files."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from mideepbasis.evaluate import (EvaluationConfig, light_error_deg, map_rmse, random_lights_and_views, rerender_rmse,
+                                  run_evaluation, ssim, trivial_baseline)
+from mideepbasis.imageio import write_image
+from mideepbasis.material import Material
+from mideepbasis.model.checkpoint import save_checkpoint
+from mideepbasis.model.network import DeepBasisNet, preset
+
+
+def flat(size=16, diffuse=0.5, roughness=0.4, specular=0.04):
+    maps = torch.zeros(1, 10, size, size)
+    maps[:, 2] = 1.0
+    maps[:, 3:6], maps[:, 6], maps[:, 7:10] = diffuse, roughness, specular
+    return maps
+
+
+def test_identical_inputs_give_zero_error():
+    maps = flat()
+    lights, views = random_lights_and_views(5)
+    assert all(float(v[0]) == 0.0 for v in map_rmse(maps, maps).values())
+    assert float(rerender_rmse(maps, maps, lights, views, "physical")[0]) == 0.0
+    image = torch.rand(2, 3, 32, 32)
+    assert torch.allclose(ssim(image, image), torch.ones(2))
+
+
+def test_known_differences_give_the_known_rmse():
+    a, b = flat(diffuse=0.5), flat(diffuse=0.6)
+    assert float(map_rmse(a, b)["diffuse"][0]) == pytest.approx(0.1, abs=1e-6)
+    tilted = flat()
+    tilted[:, 0], tilted[:, 2] = math.sin(0.2), math.cos(0.2)
+    # Normals are compared as stored, (n + 1) / 2: half the difference of the vectors.
+    expected = math.sqrt(((math.sin(0.2) / 2) ** 2 + ((1 - math.cos(0.2)) / 2) ** 2) / 3)
+    assert float(map_rmse(tilted, flat())["normal"][0]) == pytest.approx(expected, rel=1e-5)
+    # SSIM of two constant images by hand: (2 x y + c1) / (x^2 + y^2 + c1).
+    x, y, c1 = 0.3, 0.5, 0.01**2
+    value = ssim(torch.full((1, 1, 16, 16), x, dtype=torch.float64), torch.full((1, 1, 16, 16), y, dtype=torch.float64))
+    assert float(value[0]) == pytest.approx((2 * x * y + c1) / (x * x + y * y + c1), rel=1e-5)
+
+
+def test_light_error_by_hand():
+    height = 1 / math.tan(math.radians(22.5))
+    offset = (height * math.tan(math.radians(10.0)), 0.0)
+    assert light_error_deg(offset, (0.0, 0.0)) == pytest.approx(10.0, abs=1e-6)
+
+
+def test_trivial_baseline_is_flat_and_the_set_mean():
+    maps = torch.cat([flat(diffuse=0.2), flat(diffuse=0.6)])
+    baseline = trivial_baseline(maps)
+    assert torch.allclose(baseline[3:6], torch.full((3, 16, 16), 0.4))
+    assert torch.equal(baseline[0:3, 0, 0], torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_random_lights_are_seeded_and_shared():
+    a, b = random_lights_and_views(30, seed=3), random_lights_and_views(30, seed=3)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    assert not torch.equal(a[0], random_lights_and_views(30, seed=4)[0])
+    assert (a[0][:, 2] > 0).all() and (a[1][:, 2] > 0).all()
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("materials")
+    generator = torch.Generator().manual_seed(0)
+    for index in range(3):
+        normal = torch.nn.functional.normalize(torch.randn(3, 32, 32, generator=generator) * 0.2
+                                               + torch.tensor([0, 0, 1.0]).view(3, 1, 1), dim=0)
+        Material(normal, torch.rand(3, 32, 32, generator=generator), torch.rand(1, 32, 32, generator=generator),
+                 torch.full((3, 32, 32), 0.04)).save(folder / f"m{index}")
+    broken = folder / "m9"
+    Material.constant(32, 32).save(broken)
+    write_image(broken / "diffuse.png", np.full((8, 8, 3), 0.5, np.float32))  # wrong size: skipped
+    torch.manual_seed(0)
+    model = save_checkpoint(folder.parent / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())
+    return folder, model
+
+
+def test_evaluation_is_seeded_and_skips_a_corrupt_material(dataset, tmp_path):
+    folder, model = dataset
+    summaries = []
+    for run in ("a", "b"):
+        config = EvaluationConfig(data=str(folder), format="folder", out=str(tmp_path / run), model=str(model),
+                                  baselines=True, refine_steps=3)
+        with pytest.warns(UserWarning, match="skipping"):
+            summaries.append(run_evaluation(config, progress=False))
+    a, b = summaries
+    assert a["n_materials"] == 3 and a["skipped"] == 1
+    for key in ("maps_rmse", "render_rmse", "render_flip", "render_ssim"):
+        assert a[key] == b[key], key
+    assert set(a["rows"]) == {"model (no refinement)", "model + refinement (3 steps)", "trivial"}
+    assert a["render_rmse_torch_reference"] == pytest.approx(a["render_rmse"], rel=1e-3)
+    for name in ("summary.json", "per_material.csv", "table.md", "bars.png", "gallery.png"):
+        assert (tmp_path / "a" / name).is_file(), name
+    written = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert written["render_lpips"] is None or isinstance(written["render_lpips"], float)
+    assert (tmp_path / "a" / "per_material.csv").read_text().count("\n") == 1 + 3 * 3
