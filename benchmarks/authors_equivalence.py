@@ -14,8 +14,6 @@ deviations and blended maps.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import math
 import sys
 import tempfile
@@ -24,8 +22,8 @@ from pathlib import Path
 
 import mideepbasis  # noqa: F401
 import torch
+from common import RESULTS, write_report
 
-RESULTS = Path(__file__).parent / "results"
 CAMERA_HEIGHT = 2.414  # their fovZ for a 45 degree field of view
 
 
@@ -108,17 +106,12 @@ def main() -> None:
         "local_deviations": (ours.deviations - deviations).abs().max(),
         "blended_maps_signed": (ours.extras["signed_maps"] - maps).abs().max(),
     }
-    report = {"benchmark": "authors_equivalence", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "authors_repo": str(args.authors_repo), "camera_height": CAMERA_HEIGHT, "input": "256x256, centred flash",
+    report = {"authors_repo": str(args.authors_repo), "camera_height": CAMERA_HEIGHT, "input": "256x256, centred flash",
               "max_abs_difference": {k: float(v) for k, v in differences.items()},
               "map_value_range": [float(maps.min()), float(maps.max())]}
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    temporary = args.output.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(report, indent=2) + "\n")
-    temporary.replace(args.output)
     for name, value in report["max_abs_difference"].items():
         print(f"{name:22s} {value:.3e}")
-    print(f"wrote {args.output}")
+    write_report(args.output, "authors_equivalence", report)
 
 
 if __name__ == "__main__":

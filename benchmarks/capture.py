@@ -16,10 +16,7 @@ reports the median wall time of the repeats [s]:
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -28,7 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).parent / "results"
+sys.path.insert(0, str(Path(__file__).parent))
+from common import RESULTS, write_report  # noqa: E402
 TARGETS_S = {"known_light": 0.5, "search": 1.0, "search_refine": 3.0, "command": 6.0, "search_refine_1024": 15.0}
 CONFIGURATIONS = {
     "known_light": {"light": (0.25, -0.17), "refine_steps": 0, "resolution": 256},
@@ -103,14 +101,8 @@ def main() -> None:
     results["command"] = measure_command(args.model, args.repeats)
     print(f"{'command':20s} {results['command']['median_s']:.2f} s (target {TARGETS_S['command']} s), "
           f"peak {results['command']['peak_memory_mib']:.0f} MiB")
-    report = {"benchmark": "capture", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
-              "photo": "bundled example (512x512 JPEG)", "targets_s": TARGETS_S, "results": results}
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    temporary = args.output.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(report, indent=2) + "\n")
-    temporary.replace(args.output)
-    print(f"wrote {args.output}")
+    write_report(args.output, "capture", {"photo": "bundled example (512x512 JPEG)", "targets_s": TARGETS_S,
+                                          "results": results})
 
 
 if __name__ == "__main__":

@@ -18,19 +18,16 @@ Measures:
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import multiprocessing
 import os
-import platform
 import time
 from pathlib import Path
 
 import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 import numpy as np
 import torch
+from common import RESULTS, write_report
 
-RESULTS = Path(__file__).parent / "results"
 SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 
 #: Targets of the issue.
@@ -162,19 +159,14 @@ def main() -> None:
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "data.json")
     args = parser.parse_args()
 
-    report = {"benchmark": "data", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()}, "targets": TARGETS}
+    report = {"targets": TARGETS}
     report["synthesis"] = synthesis_speed(batch=16, batches=args.synthesis_batches, size=256)
     print("synthesis:", report["synthesis"])
     report["coverage"] = coverage(args.coverage_count, RESULTS / "coverage.png")
     print("coverage:", {k: v for k, v in report["coverage"].items() if "percentiles" not in k})
     report["generator"] = generator_speed(args.generator_count, 256)
     print("generator:", report["generator"])
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    temporary = args.output.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(report, indent=2) + "\n")
-    temporary.replace(args.output)
-    print(f"wrote {args.output}")
+    write_report(args.output, "data", report)
 
 
 if __name__ == "__main__":

@@ -10,10 +10,6 @@ variation-consistency loss, backward, Adam) for the compact preset at the given 
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import os
-import platform
 import statistics
 import tempfile
 import time
@@ -21,11 +17,11 @@ from pathlib import Path
 
 import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 import torch
+from common import RESULTS, write_report
 
 from mideepbasis import geometry
 from mideepbasis.model.network import DeepBasisNet, count_parameters, preset
 
-RESULTS = Path(__file__).parent / "results"
 TARGETS = {"compact_parameters": 4_000_000, "compact_forward_256_ms": 150.0}
 
 
@@ -77,15 +73,7 @@ def main() -> None:
     training = {f"compact_{size}px_batch{args.train_batch}": training_steps_per_second(size, args.train_batch, args.train_steps)
                 for size in (128, 256)}
     print("training steps/s:", training)
-    report = {"benchmark": "model", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                          "torch_threads": torch.get_num_threads(), "cuda": torch.cuda.is_available()},
-              "targets": TARGETS, "presets": presets, "training_steps_per_second": training}
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    temporary = args.output.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(report, indent=2) + "\n")
-    temporary.replace(args.output)
-    print(f"wrote {args.output}")
+    write_report(args.output, "model", {"targets": TARGETS, "presets": presets, "training_steps_per_second": training})
 
 
 if __name__ == "__main__":

@@ -13,20 +13,18 @@ DeepBasis row (on its 122 scenes) is listed for reference.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import time
 from pathlib import Path
 
 import mideepbasis  # noqa: F401
 import torch
+from common import RESULTS, write_report
 
 from mideepbasis.capture import predict
 from mideepbasis.data.datasets import DeschaintreDataset
 from mideepbasis.evaluate import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
 from mideepbasis.model.checkpoint import load_model, shipped_model_path
 
-RESULTS = Path(__file__).parent / "results"
 SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 PAPER = {"normal": 0.053, "diffuse": 0.031, "roughness": 0.162, "specular": 0.043}
 TRIVIAL_QUOTED = {"normal": 0.074, "diffuse": 0.061, "roughness": 0.173, "specular": 0.040}
@@ -64,20 +62,15 @@ def main() -> None:
         render = torch.cat([rerender_rmse(estimate[i:i + 6], materials[i:i + 6], lights, views, convention)
                             for i in range(0, len(materials), 6)])
         rows[name] = {**{k: round(float(v.mean()), 4) for k, v in maps.items()}, "render_rmse": round(float(render.mean()), 4)}
-    report = {"benchmark": "model_quality", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "model": str(args.model or shipped_model_path()), "convention": convention, "materials": len(materials),
+    report = {"model": str(args.model or shipped_model_path()), "convention": convention, "materials": len(materials),
               "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
               "prediction_seconds": round(seconds, 1), "rows": rows, "paper_deepbasis_122_scenes": PAPER,
               "trivial_quoted_in_issue": TRIVIAL_QUOTED, "per_material_names": names}
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    temporary = args.output.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(report, indent=2) + "\n")
-    temporary.replace(args.output)
+    write_report(args.output, "model_quality", report)
     print(f"{'':10s} {'normal':>8s} {'diffuse':>8s} {'rough':>8s} {'specular':>8s} {'render':>8s}")
     for name, row in rows.items():
         print(f"{name:10s} " + " ".join(f"{row[k]:8.4f}" for k in ("normal", "diffuse", "roughness", "specular", "render_rmse")))
     print(f"{'paper':10s} " + " ".join(f"{PAPER[k]:8.4f}" for k in ("normal", "diffuse", "roughness", "specular")))
-    print(f"wrote {args.output}")
 
 
 if __name__ == "__main__":

@@ -14,11 +14,7 @@ Writes JSON with the machine, the date and every timing [ms].
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import math
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -26,8 +22,9 @@ from pathlib import Path
 import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 import torch
 
-from mideepbasis.render import bridge, reference, scenes
+from common import RESULTS, write_report
 from mideepbasis import constants
+from mideepbasis.render import bridge, reference, scenes
 
 TARGETS_MS = {"flash_forward_backward": 10.0, "flash_64_candidates": 30.0, "env_preview_64spp": 1000.0}
 
@@ -55,7 +52,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("-o", "--output", type=Path, default=Path(__file__).parent / "results" / "render.json")
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "render.json")
     args = parser.parse_args()
 
     size = args.resolution
@@ -94,26 +91,12 @@ def main() -> None:
         "torch_reference": None,
     }
 
-    report = {
-        "benchmark": "render",
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "resolution": size,
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")},
-        "targets_ms": TARGETS_MS,
-        "results": results,
-    }
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    temporary = args.output.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(report, indent=2) + "\n")
-    temporary.replace(args.output)
     for key, value in results.items():
         line = "  ".join(f"{backend}: {timing['median_ms']:.2f} ms" if timing else f"{backend}: -"
                          for backend, timing in value.items())
         target = f"(target <= {TARGETS_MS[key]:.0f} ms)" if key in TARGETS_MS else ""
         print(f"{key:26s} {line} {target}")
-    print(f"wrote {args.output}")
+    write_report(args.output, "render", {"resolution": size, "targets_ms": TARGETS_MS, "results": results})
 
 
 if __name__ == "__main__":

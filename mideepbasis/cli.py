@@ -232,6 +232,7 @@ def _add_evaluate(subparsers) -> None:
     parser.add_argument("--direct-model", type=Path, default=None, help="checkpoint of the direct (no bases) network")
     parser.add_argument("--lighting", action="store_true", help="lighting-search accuracy and robustness to the offset")
     parser.add_argument("--limit", type=_positive_int, default=None, help="only the first N materials")
+    parser.add_argument("--resolution", type=_positive_int, default=None, help="resample the materials first [pixels]")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
     parser.set_defaults(run=_run_evaluate)
@@ -246,7 +247,7 @@ def _run_evaluate(args) -> None:
                               model=str(args.model) if args.model else None, light=args.light,
                               refine_steps=args.refine_steps, baselines=args.baselines,
                               direct_model=str(args.direct_model) if args.direct_model else None,
-                              lighting=args.lighting, seed=args.seed, limit=args.limit)
+                              lighting=args.lighting, seed=args.seed, limit=args.limit, resolution=args.resolution)
     summary = run_evaluation(config)
     print((args.output / "table.md").read_text())
     for note in summary["notes"]:

@@ -287,6 +287,9 @@ class EvaluationConfig:
     limit: int | None = None
     """Evaluate only the first this many materials (quick runs)."""
 
+    resolution: int | None = None
+    """Resample the materials to this size first [pixels] (None: as stored)."""
+
 
 def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch.Tensor, int]:
     """(names, maps (N, 10, H, W), number skipped) of a dataset; every material at one size."""
@@ -406,6 +409,8 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     names, truth, skipped = load_evaluation_set(config.data, config.format)
     if config.limit:
         names, truth = names[:config.limit], truth[:config.limit]
+    if config.resolution and config.resolution != truth.shape[-1]:
+        truth = torch.stack([_resize_maps(m, config.resolution) for m in truth])
     model = load_model(config.model)
     convention = model.config.convention
     offsets = evaluation_offsets(len(truth), config.seed, config.fov)
@@ -450,6 +455,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
 
     main = rows[main_row]
     summary = {"n_materials": len(truth), "skipped": skipped, "data": str(config.data), "format": config.format,
+               "resolution": truth.shape[-1],
                "model": config.model or "shipped", "convention": convention, "light": config.light,
                "refine_steps": config.refine_steps, "row": main_row,
                "maps_rmse": {k: main[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},

@@ -34,7 +34,7 @@ import torch
 
 from . import constants, geometry
 from .errors import InputError
-from .imageio import linear_to_srgb, write_bytes, write_image
+from .imageio import write_bytes, write_image
 
 
 def _json_bytes(document: dict) -> bytes:

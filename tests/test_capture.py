@@ -11,7 +11,7 @@ import pytest
 import torch
 from PIL import Image
 
-from mideepbasis import cli, constants, geometry
+from mideepbasis import cli, constants
 from mideepbasis.capture import (CaptureConfig, capture, field_of_view_from_focal, load_photo, maps_from_bases,
                                  refine_global_bases, search_light)
 from mideepbasis.evaluate import flash_photos, light_error_deg

@@ -10,7 +10,7 @@ from torch.utils.data import DataLoader
 from mideepbasis.data.datasets import (DeschaintreDataset, MaterialFolderDataset, PBRFolderDataset, ProceduralMaterials,
                                        ProceduralStream, classify_map_file)
 from mideepbasis.data.procedural import GeneratorConfig
-from mideepbasis.imageio import linear_to_srgb, write_image
+from mideepbasis.imageio import write_image
 from mideepbasis.material import Material
 
 

@@ -25,7 +25,7 @@ import torch
 
 from ... import constants
 from ...material import Material
-from . import families  # noqa: F401  (registers every family)
+from . import families as _families  # noqa: F401  (registers every family)
 from .core import Canvas, Surface, height_to_normal
 from .layers import mixing_mask, unevenness, weather
 from .registry import FAMILIES
