@@ -50,7 +50,7 @@ class GeneratorConfig:
     weathering: bool = True
     """Apply the weathering layers (each with its own chance)."""
 
-    bump_scale: tuple[float, float] = (0.5, 1.6)
+    bump_scale: tuple[float, float] = (0.6, 4.0)
     """Range of a random factor on the relief, log-uniform: the same structure deeper or flatter."""
 
 
