@@ -83,6 +83,10 @@ class CaptureConfig:
     search_resolution: int = 128
     """Resolution of the lighting search's candidate renders [pixels]."""
 
+    search_network_resolution: int = 256
+    """Largest resolution of the lighting search's network passes [pixels]: a larger photo is
+    searched on a downsampled copy (the flash position shows at any scale), then predicted in full."""
+
     search_passes: int = 6
     """Most network passes of the lighting search."""
 
@@ -292,6 +296,8 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
                  ) -> tuple[tuple[float, float], list[dict], DeepBasisOutput]:
     """Find the flash offset of ``photo`` (3, H, W); returns (offset, history, last prediction)."""
     convention = model.config.convention
+    if photo.shape[-1] > config.search_network_resolution:
+        photo = _downsample(photo[None], config.search_network_resolution)[0]
     small_photo = _downsample(photo[None], config.search_resolution)
     candidates = candidate_offsets(fov, config.max_offset_deg, config.search_grid)
     current = torch.zeros(2)
