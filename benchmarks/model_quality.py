@@ -35,6 +35,8 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--data", type=Path, default=SHARED_TEST)
     parser.add_argument("--batch", type=int, default=6)
+    parser.add_argument("--network-resolution", type=int, default=None,
+                        help="run the network on photos resampled to this size and upsample its maps (default: as is)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "model_quality.json")
     args = parser.parse_args()
 
@@ -51,7 +53,15 @@ def main() -> None:
     for first in range(0, len(materials), args.batch):
         truth = materials[first:first + args.batch]
         photos, flash = flash_photos(truth, torch.zeros(len(truth), 2), convention=convention)
-        predictions.append(predict(model, photos, flash).maps.cpu())
+        size = photos.shape[-1]
+        if args.network_resolution and args.network_resolution != size:
+            small = torch.nn.functional.interpolate(photos, size=args.network_resolution, mode="area")
+            maps = predict(model, small, flash).maps.cpu()
+            maps = torch.nn.functional.interpolate(maps, size=size, mode="bilinear", align_corners=False)
+            maps[:, :3] = torch.nn.functional.normalize(maps[:, :3], dim=1)
+            predictions.append(maps)
+        else:
+            predictions.append(predict(model, photos, flash).maps.cpu())
     predicted = torch.cat(predictions)
     seconds = time.perf_counter() - start
     baseline = trivial_baseline(materials).expand_as(materials)
@@ -63,7 +73,7 @@ def main() -> None:
                             for i in range(0, len(materials), 6)])
         rows[name] = {**{k: round(float(v.mean()), 4) for k, v in maps.items()}, "render_rmse": round(float(render.mean()), 4)}
     report = {"model": str(args.model or shipped_model_path()), "convention": convention, "materials": len(materials),
-              "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
+              "network_resolution": args.network_resolution or 256, "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
               "prediction_seconds": round(seconds, 1), "rows": rows, "paper_deepbasis_122_scenes": PAPER,
               "trivial_quoted_in_issue": TRIVIAL_QUOTED, "per_material_names": names}
     write_report(args.output, "model_quality", report)
