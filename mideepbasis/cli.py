@@ -294,6 +294,8 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--vc-weight", type=float, default=defaults.vc_weight, help="0 turns the VC loss off")
     parser.add_argument("--normal-weight", type=float, default=defaults.normal_weight,
                         help="weight of the normal channels in the supervised L1 (1: the paper's)")
+    parser.add_argument("--saturation-weight", type=float, default=defaults.saturation_weight,
+                        help="weight of the penalty on saturated blending-weight outputs (0: the paper's loss)")
     parser.add_argument("--bases", type=_positive_int, default=None, help="number N of basis materials")
     parser.add_argument("--no-local", action="store_true", help="ablation: no local bases")
     parser.add_argument("--no-global", action="store_true", help="ablation: no global bases")
@@ -322,7 +324,8 @@ def _run_train(args) -> None:
             network[key] = False
     config = TrainConfig(out=str(args.out), preset=args.preset, network=network, data=tuple(args.data or ["procedural"]),
                          steps=args.steps, batch=args.batch, size=args.size, lr=args.lr, local_lr=args.local_lr,
-                         vc_weight=args.vc_weight, normal_weight=args.normal_weight, seed=args.seed, workers=args.workers,
+                         vc_weight=args.vc_weight, normal_weight=args.normal_weight,
+                         saturation_weight=args.saturation_weight, seed=args.seed, workers=args.workers,
                          checkpoint_minutes=args.checkpoint_minutes, validate_every=args.validate_every,
                          log_every=args.log_every, device=args.device,
                          init=str(args.init) if args.init else None)

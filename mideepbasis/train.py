@@ -82,6 +82,13 @@ class TrainConfig:
     kept at 1). The paper weighs all ten equally; on a CPU budget the normals, whose signal in a
     flash photo is faint, stay flat for thousands of steps unless they weigh more."""
 
+    saturation_weight: float = 1e-3
+    """Weight of a penalty on the weight decoder's pre-tanh outputs beyond +-2 (not in the paper).
+    Without it a run at these learning rates drove them to +-30 within a few hundred steps: the
+    tanh saturated, every pixel got the same blend of five bases, the blend's gradient vanished
+    and the normals stayed flat for good. The penalty's gradient bypasses the tanh, so it also
+    revives a saturated network."""
+
     seed: int = 0
     """Seed of the run: materials, network initialisation, synthesis."""
 
@@ -220,6 +227,11 @@ def supervised_loss(output: DeepBasisOutput, maps: torch.Tensor, normal_weight: 
     """(Weighted) L1 between the predicted blend and the ground truth, in signed space."""
     difference = (output.signed_maps - to_signed(maps)).abs()
     return (difference * channel_weights(normal_weight, maps.device)).mean()
+
+
+def saturation_penalty(raw: torch.Tensor, limit: float = 2.0) -> torch.Tensor:
+    """mean(max(|raw| - limit, 0)^2) of pre-tanh outputs (B, C, H, W): zero where tanh still has slope."""
+    return torch.relu(raw.abs() - limit).square().mean()
 
 
 def variation_consistency_loss(original: DeepBasisOutput, varied: DeepBasisOutput, variation: Variation,
@@ -402,13 +414,14 @@ class Trainer:
                                             config.normal_weight)
         else:
             sup, vc = supervised_loss(output, target, config.normal_weight), torch.zeros((), device=self.device)
-        loss = sup + config.vc_weight * vc
+        saturation = saturation_penalty(output.extras["decoder_raw"])
+        loss = sup + config.vc_weight * vc + config.saturation_weight * saturation
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
         self.step += 1
         self._set_learning_rate()
-        return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item()}
+        return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item()}
 
     # --- the loop ----------------------------------------------------------------------------------
 

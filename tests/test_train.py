@@ -14,7 +14,8 @@ from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import Variation
 from mideepbasis.model.checkpoint import load_model, read_checkpoint
 from mideepbasis.model.network import DeepBasisOutput
-from mideepbasis.train import TrainConfig, Trainer, augment, learning_rate_factor, variation_consistency_loss
+from mideepbasis.train import (TrainConfig, Trainer, augment, learning_rate_factor, saturation_penalty,
+                               variation_consistency_loss)
 
 
 def tiny_config(tmp_path, **overrides):
@@ -47,6 +48,32 @@ def test_variation_consistency_loss_by_hand():
     consistency = sum(abs(e - 0.0) for e in expected_basis) / 10
     supervised = (0 + 0 + 1 + 7 * 1) / 10  # signed maps 0 against truth [0, 0, 1, -1 x 7]
     assert loss.item() == pytest.approx(consistency + supervised, abs=1e-6)
+
+
+def test_saturation_penalty_by_hand():
+    raw = torch.tensor([0.5, -2.0, 3.0, -5.0], requires_grad=True).view(1, 4, 1, 1)
+    penalty = saturation_penalty(raw, limit=2.0)
+    assert penalty.item() == pytest.approx((0 + 0 + 1 ** 2 + 3 ** 2) / 4)
+    (gradient,) = torch.autograd.grad(penalty, raw)
+    # Zero inside the limit; outside, it points away from zero, so descent pulls back into range.
+    assert gradient.flatten().tolist() == pytest.approx([0.0, 0.0, 2 * 1 / 4, -2 * 3 / 4])
+
+
+def test_penalty_revives_a_saturated_weight_decoder(tmp_path):
+    # Blow the decoder's last layer up until its outputs reach tens (tanh flat, the blend's gradient
+    # gone), as a run's did; with the penalty they come back, without it they do not.
+    maps = torch.stack([generate(seed, config=GeneratorConfig(size=32)).to_tensor() for seed in range(2)])
+    final = {}
+    for weight in (0.0, 1e-2):
+        trainer = Trainer(tiny_config(tmp_path / str(weight), lr=1e-2, local_lr=1e-2, saturation_weight=weight),
+                          progress=False)
+        with torch.no_grad():
+            trainer.model.weight_decoder.convs[-1][-1].weight.mul_(100.0)
+        first = trainer.train_step(maps)["l_saturation"]
+        for _ in range(40):
+            final[weight] = trainer.train_step(maps)["l_saturation"]
+        assert first > 100
+    assert final[1e-2] < 0.15 * first and final[1e-2] < 0.05 * final[0.0], final
 
 
 def test_learning_rate_decays_by_cosine():

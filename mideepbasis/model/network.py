@@ -305,9 +305,10 @@ class DeepBasisNet(nn.Module):
         if height % config.stride or width % config.stride:
             raise ValueError(f"input size {height}x{width} is not a multiple of the network's stride {config.stride}")
         levels, global_features = self.encoder(inputs)
-        decoded = torch.tanh(self.weight_decoder(levels, global_features))
+        raw = self.weight_decoder(levels, global_features)
+        decoded = torch.tanh(raw)
         if not config.use_bases:
-            return DeepBasisOutput(maps=to_maps(decoded), extras={"signed_maps": decoded})
+            return DeepBasisOutput(maps=to_maps(decoded), extras={"signed_maps": decoded, "decoder_raw": raw})
 
         batch, n = inputs.shape[0], config.num_bases
         weights = normalize_weights(decoded)
@@ -316,7 +317,7 @@ class DeepBasisNet(nn.Module):
             global_bases = normalize_basis_normals(self.global_unit(pooled).view(batch, n, constants.BASIS_CHANNELS), dim=2)
         else:
             global_bases = inputs.new_zeros(batch, n, constants.BASIS_CHANNELS)
-        output = DeepBasisOutput(maps=None, weights=weights, global_bases=global_bases)
+        output = DeepBasisOutput(maps=None, weights=weights, global_bases=global_bases, extras={"decoder_raw": raw})
         if not hasattr(self, "local_unit"):
             signed = blend(weights, global_bases)
             output.maps, output.extras["signed_maps"] = to_maps(signed), signed
