@@ -59,13 +59,15 @@ def main() -> None:
             continue
         folder = args.out / slug(name)
         model = folder / "model.safetensors"
-        started = time.perf_counter()
+        timing = folder / "train_seconds.txt"
         if not model.exists():
+            started = time.perf_counter()
             config = TrainConfig(out=str(folder), preset="compact", network=network, steps=args.steps, batch=args.batch,
                                  size=args.size, workers=1, validate_every=0, seed=11,
                                  vc_weight=0.05 if vc_weight is None else vc_weight)
             train(config, progress=False)
-        train_seconds = time.perf_counter() - started
+            timing.write_text(f"{time.perf_counter() - started:.1f}\n")
+        train_seconds = float(timing.read_text()) if timing.exists() else float("nan")
         summary = run_evaluation(EvaluationConfig(data=str(SHARED_TEST), format="deschaintre5", out=str(folder / "evaluation"),
                                                   model=str(model), resolution=args.size), progress=False)
         rows[name] = {"maps_rmse": summary["maps_rmse"], "render_rmse": summary["render_rmse"],

@@ -412,6 +412,8 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     if config.resolution and config.resolution != truth.shape[-1]:
         truth = torch.stack([_resize_maps(m, config.resolution) for m in truth])
     model = load_model(config.model)
+    # Load the direct baseline now, so a wrong path fails before minutes of predictions.
+    direct = load_model(config.direct_model) if config.baselines and config.direct_model else None
     convention = model.config.convention
     offsets = evaluation_offsets(len(truth), config.seed, config.fov)
     lights, views = random_lights_and_views(RERENDER_COUNT, config.seed)
@@ -441,8 +443,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
         predictions["trivial"] = trivial_baseline(truth).expand_as(truth)
         per_material["trivial"] = score(predictions["trivial"], truth, lights, views, convention, lpips)
         rows["trivial"] = {"seconds": 0.0}
-        if config.direct_model:
-            direct = load_model(config.direct_model)
+        if direct is not None:
             start = time.perf_counter()
             predictions["direct (no bases)"], _, _ = _predict_all(direct, truth, offsets, config.fov, "known", 0, progress,
                                                                   "direct")
