@@ -63,27 +63,25 @@ def main() -> None:
         folder = args.out / slug(name)
         model = folder / "model.safetensors"
         timing = folder / "train_seconds.txt"
+        evaluated = folder / "evaluation" / "summary.json"
         if args.table_only:
-            evaluated = folder / "evaluation" / "summary.json"
             if not evaluated.exists():
                 continue
             summary = json.loads(evaluated.read_text())
-            rows[name] = {"maps_rmse": summary["maps_rmse"], "render_rmse": summary["render_rmse"],
-                          "render_flip": summary["render_flip"],
-                          "train_seconds": float(timing.read_text()) if timing.exists() else float("nan")}
-            continue
-        if not model.exists():
-            started = time.perf_counter()
-            config = TrainConfig(out=str(folder), preset="compact", network=network, steps=args.steps, batch=args.batch,
-                                 size=args.size, workers=1, validate_every=0, seed=11,
-                                 vc_weight=0.05 if vc_weight is None else vc_weight)
-            train(config, progress=False)
-            timing.write_text(f"{time.perf_counter() - started:.1f}\n")
-        train_seconds = float(timing.read_text()) if timing.exists() else float("nan")
-        summary = run_evaluation(EvaluationConfig(data=str(SHARED_TEST), format="deschaintre5", out=str(folder / "evaluation"),
-                                                  model=str(model), resolution=args.size), progress=False)
+        else:
+            if not model.exists():
+                started = time.perf_counter()
+                config = TrainConfig(out=str(folder), preset="compact", network=network, steps=args.steps,
+                                     batch=args.batch, size=args.size, workers=1, validate_every=0, seed=11,
+                                     vc_weight=0.05 if vc_weight is None else vc_weight)
+                train(config, progress=False)
+                timing.write_text(f"{time.perf_counter() - started:.1f}\n")
+            summary = run_evaluation(EvaluationConfig(data=str(SHARED_TEST), format="deschaintre5",
+                                                      out=str(folder / "evaluation"), model=str(model),
+                                                      resolution=args.size), progress=False)
         rows[name] = {"maps_rmse": summary["maps_rmse"], "render_rmse": summary["render_rmse"],
-                      "render_flip": summary["render_flip"], "train_seconds": round(train_seconds, 1)}
+                      "render_flip": summary["render_flip"],
+                      "train_seconds": float(timing.read_text()) if timing.exists() else float("nan")}
         print(name, rows[name])
 
     budget = {"steps": args.steps, "batch": args.batch, "size": args.size, "preset": "compact", "data": "procedural"}
