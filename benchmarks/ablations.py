@@ -19,9 +19,11 @@ import time
 from pathlib import Path
 
 import mideepbasis  # noqa: F401
+import torch
 from common import RESULTS, write_report
 
-from mideepbasis.evaluate import PAPER_DEEPBASIS, EvaluationConfig, run_evaluation
+from mideepbasis.evaluate import (PAPER_DEEPBASIS, RERENDER_COUNT, EvaluationConfig, _resize_maps, load_evaluation_set,
+                                  random_lights_and_views, run_evaluation, score, trivial_baseline)
 from mideepbasis.train import TrainConfig, train
 
 HERE = Path(__file__).parent
@@ -39,6 +41,21 @@ VARIANTS = {
     "N=5": ({"num_bases": 5}, None),
     "N=20": ({"num_bases": 20}, None),
 }
+
+
+#: Hand-written notes below this line of ablations.md survive a regeneration of the table.
+NOTES_MARKER = "<!-- notes kept by ablations.py -->"
+
+
+def trivial_row(size: int, convention: str = "physical") -> dict:
+    """The trivial baseline (flat normal, the set's mean maps) scored as the variants are."""
+    _, truth, _ = load_evaluation_set(SHARED_TEST, "deschaintre5")
+    truth = torch.stack([_resize_maps(m, size) for m in truth])
+    lights, views = random_lights_and_views(RERENDER_COUNT, EvaluationConfig(data="").seed)
+    metrics = score(trivial_baseline(truth).expand_as(truth), truth, lights, views, convention, None)
+    means = {key: float(value.mean()) for key, value in metrics.items()}
+    return {"maps_rmse": {k: means[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
+            "render_rmse": means["render_rmse"], "render_flip": means["render_flip"], "train_seconds": 0.0}
 
 
 def slug(name: str) -> str:
@@ -84,6 +101,8 @@ def main() -> None:
                       "train_seconds": float(timing.read_text()) if timing.exists() else float("nan")}
         print(name, rows[name])
 
+    if rows:
+        rows["trivial baseline (no training)"] = trivial_row(args.size)
     budget = {"steps": args.steps, "batch": args.batch, "size": args.size, "preset": "compact", "data": "procedural"}
     write_report(RESULTS / "ablations.json", "ablations", {"budget": budget, "rows": rows})
     date = datetime.date.today().isoformat()
@@ -107,7 +126,11 @@ def main() -> None:
     lines += ["", "The paper's own ablation rows are not reproduced here: its text is not available on this machine. "
               "The budget is far smaller than the paper's (400k steps on a GPU), so these rows compare the variants "
               "with each other, not with the paper."]
-    (HERE / "ablations.md").write_text("\n".join(lines) + "\n")
+    table = HERE / "ablations.md"
+    previous = table.read_text() if table.exists() else ""
+    kept = previous.split(NOTES_MARKER, 1)[1].strip() if NOTES_MARKER in previous else ""
+    lines += ["", NOTES_MARKER] + ([kept] if kept else [])
+    table.write_text("\n".join(lines) + "\n")
     print(f"wrote {HERE / 'ablations.md'}")
 
 
