@@ -68,14 +68,23 @@ class CaptureConfig:
     resolution: int | str = constants.DEFAULT_RESOLUTION
     """Working resolution [pixels], or ``native`` (the photo's own, up to 2048)."""
 
-    refine_steps: int = 500
-    """Adam steps refining the global bases; 0 turns refinement off."""
+    refine_steps: int = 250
+    """Adam steps refining the global bases; 0 turns refinement off. (The paper: 500; with the
+    normals kept, 250 do as well here: benchmarks/refinement.py.)"""
 
     refine_resolution: int = 64
     """Resolution of the refinement's renders [pixels]."""
 
     refine_lr: float = 0.01
     """Adam learning rate of the refinement [signed-space units per step]."""
+
+    refine_normals: bool = False
+    """Whether the refinement may turn the global bases' normals, as the paper's does. Off by
+    default: fitting the one flash view by tilting the normals raised the normal and the
+    re-rendering errors (benchmarks/refinement.py)."""
+
+    refine_prior: float = 0.0
+    """Weight of the L1 pull of the refined global bases toward the network's (0: none)."""
 
     search_grid: int = 21
     """Candidates per side of the lighting search's square grid over the offsets within delta."""
@@ -327,13 +336,19 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
 
 def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: torch.Tensor, fov: float,
                         convention: str, steps: int = 500, resolution: int = 64, lr: float = 0.01,
-                        progress: bool = False, extent: float = 1.0) -> tuple[torch.Tensor, list[float]]:
+                        progress: bool = False, extent: float = 1.0, refine_normals: bool = True,
+                        prior: float = 0.0) -> tuple[torch.Tensor, list[float]]:
     """Optimise the global bases so the rendering matches the photo; weights and deviations stay fixed.
+
+    The loss is the mean L1 between the rendering and the photo, plus ``prior`` times the mean L1
+    between the bases and the network's.
 
     Args:
         output: the prediction (weights, global bases, deviations) of one photo.
         photo: (3, H, W) the photo, linear; light: (3,) the flash position.
         steps, resolution, lr: Adam steps, render resolution [pixels], learning rate.
+        refine_normals: False keeps the bases' normals as predicted (one view constrains them poorly).
+        prior: weight of the pull toward the network's bases.
 
     Returns:
         ((1, N, 10) refined global bases, signed space; the loss at every step).
@@ -347,7 +362,12 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     deviations = _downsample(_deviations(output).detach().cpu(), resolution)
     target = _downsample(photo[None], resolution)
     lights = light.view(1, 1, 3)
-    global_bases = output.global_bases.detach().cpu().clone().requires_grad_(True)
+    predicted = output.global_bases.detach().cpu()
+    global_bases = predicted.clone().requires_grad_(True)
+    # Zero where the refinement may not move a channel: the normals when refine_normals is False.
+    movable = torch.ones(constants.BASIS_CHANNELS)
+    if not refine_normals:
+        movable[:3] = 0.0
     optimizer = torch.optim.Adam([global_bases], lr=lr)
     losses = []
     # The tensors here are small: waking torch's worker threads for every op costs more than it saves.
@@ -355,10 +375,13 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     torch.set_num_threads(1)
     try:
         for _ in tqdm(range(steps), desc="refining", unit="step", disable=not progress):
-            bases = normalize_basis_normals(global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
+            current = predicted + (global_bases - predicted) * movable
+            bases = normalize_basis_normals(current[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
             maps = to_maps(blend(weights, bases))
             rendered = render_flash(maps, lights, fov=fov, convention=convention, extent=extent)[:, 0].clamp(0.0, 1.0)
             loss = (rendered - target).abs().mean()
+            if prior:
+                loss = loss + prior * (current - predicted).abs().mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -367,7 +390,7 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
             losses.append(loss.item())
     finally:
         torch.set_num_threads(threads)
-    return global_bases.detach(), losses
+    return (predicted + (global_bases.detach() - predicted) * movable), losses
 
 
 def _deviations(output: DeepBasisOutput) -> torch.Tensor:
@@ -445,7 +468,8 @@ def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path |
         start = time.perf_counter()
         refined, losses = refine_global_bases(output, photo, light, fov, model.config.convention, config.refine_steps,
                                               config.refine_resolution, config.refine_lr, progress,
-                                              extent=model.config.plane_extent)
+                                              extent=model.config.plane_extent, refine_normals=config.refine_normals,
+                                              prior=config.refine_prior)
         output.global_bases = refined.to(output.global_bases)
         maps = maps_from_bases(output, refined).cpu()
         timings["refine"] = time.perf_counter() - start

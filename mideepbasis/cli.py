@@ -1,13 +1,13 @@
 """The ``mideepbasis`` command. Thin: parse arguments, call the library, print one line per error.
 
-    mideepbasis capture PHOTO [PHOTO ...] -o OUT [--fov DEG] [--light TX,TY] [--refine-steps 500]
-                        [--resolution N|native] [--model PATH] [--exr] [--overwrite]
+    mideepbasis capture PHOTO [PHOTO ...] -o OUT [--fov DEG] [--light TX,TY] [--refine-steps 250]
+                        [--refine-normals] [--resolution N|native] [--model PATH] [--exr] [--overwrite]
     mideepbasis render MATERIAL_DIR -o OUT.exr [--light flash|env] [--fov 45] [--offset TX,TY]
                        [--spp N] [--convention physical|deepbasis] [--env studio|sunsky|FILE]
     mideepbasis demo [-o OUT_DIR]
     mideepbasis data preview [--n 64] [--seed S] [--family NAME] [--tileable] -o SHEET.png
     mideepbasis evaluate --data PATH --format deschaintre5|deschaintre4|folder [--model PATH]
-                         [--light known|search] [--refine-steps K] [--baselines] [--lighting] -o OUT
+                         [--light known|search] [--refine-steps K] [--refine-normals] [--baselines] [--lighting] -o OUT
     mideepbasis import-weights GLOBAL.pth LOCAL.pth --fov 45 -o model.safetensors
     mideepbasis train --preset compact --data procedural [--data FOLDER ...] --steps N --batch B --out runs/NAME [--resume]
 """
@@ -101,6 +101,8 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("--light", type=_offset, default=None, metavar="TX,TY",
                         help="known flash offset [patch half-widths]: skips the lighting search")
     parser.add_argument("--refine-steps", type=int, default=defaults.refine_steps, help="0 turns refinement off")
+    parser.add_argument("--refine-normals", action="store_true",
+                        help="let the refinement turn the global bases' normals too (the paper's refinement)")
     parser.add_argument("--resolution", type=_resolution, default=defaults.resolution, metavar="N|native",
                         help="working resolution [pixels], or native (up to 2048)")
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
@@ -132,7 +134,8 @@ def _run_capture(args) -> int:
     single = len(photos) == 1
     check_output(args.output, args.overwrite)
     model = load_model(args.model)
-    config = CaptureConfig(fov=args.fov, light=args.light, refine_steps=args.refine_steps, resolution=args.resolution)
+    config = CaptureConfig(fov=args.fov, light=args.light, refine_steps=args.refine_steps,
+                           refine_normals=args.refine_normals, resolution=args.resolution)
     failures = []
     for photo in tqdm(photos, desc="capturing", unit="photo", disable=single):
         target = args.output if single else args.output / photo.stem
@@ -227,7 +230,10 @@ def _add_evaluate(subparsers) -> None:
     parser.add_argument("--format", choices=["deschaintre5", "deschaintre4", "folder"], default="deschaintre5")
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--light", choices=["known", "search"], default="known")
-    parser.add_argument("--refine-steps", type=int, default=0)
+    parser.add_argument("--refine-steps", type=int, default=0,
+                        help="refine the model's row (with --baselines: the refined row; default then: capture's)")
+    parser.add_argument("--refine-normals", action="store_true",
+                        help="let the refinement turn the global bases' normals too (the paper's refinement)")
     parser.add_argument("--baselines", action="store_true", help="also trivial, direct, unrefined and refined rows")
     parser.add_argument("--direct-model", type=Path, default=None, help="checkpoint of the direct (no bases) network")
     parser.add_argument("--lighting", action="store_true", help="lighting-search accuracy and robustness to the offset")
@@ -245,7 +251,8 @@ def _run_evaluate(args) -> None:
         raise InputError(f"{args.data}: no such dataset folder")
     config = EvaluationConfig(data=str(args.data), format=args.format, out=str(args.output),
                               model=str(args.model) if args.model else None, light=args.light,
-                              refine_steps=args.refine_steps, baselines=args.baselines,
+                              refine_steps=args.refine_steps, refine_normals=args.refine_normals,
+                              baselines=args.baselines,
                               direct_model=str(args.direct_model) if args.direct_model else None,
                               lighting=args.lighting, seed=args.seed, limit=args.limit, resolution=args.resolution)
     summary = run_evaluation(config)

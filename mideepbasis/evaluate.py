@@ -269,6 +269,9 @@ class EvaluationConfig:
     refine_steps: int = 0
     """Refinement steps of the model's row (the paper: 500)."""
 
+    refine_normals: bool = False
+    """Whether the refinement may turn the global bases' normals (the paper's refinement)."""
+
     baselines: bool = False
     """Add the trivial, direct (``direct_model``), unrefined and refined rows."""
 
@@ -361,7 +364,7 @@ def score(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, vi
 
 
 def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine_steps: int,
-                 progress: bool, label: str) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+                 progress: bool, label: str, refine_normals: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine_steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
     import time
@@ -388,8 +391,11 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
         refine_seconds = 0.0
         if refine_steps and output.weights is not None:
             started = time.perf_counter()
+            defaults = CaptureConfig()
             refined, _ = refine_global_bases(output, photos[0], position[0], fov, convention, steps=refine_steps,
-                                             extent=model.config.plane_extent)
+                                             resolution=defaults.refine_resolution, lr=defaults.refine_lr,
+                                             extent=model.config.plane_extent, refine_normals=refine_normals,
+                                             prior=defaults.refine_prior)
             refined_maps.append(maps_from_bases(output, refined).cpu())
             refine_seconds = time.perf_counter() - started
         details.append({"light_error_deg": light_error_deg(offset.tolist(), offsets[index].tolist(), fov),
@@ -424,11 +430,15 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     rows: dict[str, dict] = {}
     per_material: dict[str, dict] = {}
     predictions = {}
-    steps = config.refine_steps or (500 if config.baselines else 0)
-    plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model")
+    from .capture import CaptureConfig
+
+    steps = config.refine_steps or (CaptureConfig().refine_steps if config.baselines else 0)
+    plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model",
+                                           config.refine_normals)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
-    unrefined_row, refined_row = "model (no refinement)", f"model + refinement ({steps} steps)"
+    kept = "" if config.refine_normals else ", normals kept"
+    unrefined_row, refined_row = "model (no refinement)", f"model + refinement ({steps} steps{kept})"
     if refined is None or config.baselines:
         predictions[unrefined_row] = plain
         rows[unrefined_row] = {"seconds": seconds, "light_error_deg": light_error}
@@ -458,7 +468,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     summary = {"n_materials": len(truth), "skipped": skipped, "data": str(config.data), "format": config.format,
                "resolution": truth.shape[-1],
                "model": config.model or "shipped", "convention": convention, "light": config.light,
-               "refine_steps": config.refine_steps, "row": main_row,
+               "refine_steps": config.refine_steps, "refine_normals": config.refine_normals, "row": main_row,
                "maps_rmse": {k: main[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
                "render_rmse": main["render_rmse"], "render_flip": main["render_flip"], "render_ssim": main["render_ssim"],
                "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),

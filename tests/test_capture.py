@@ -87,6 +87,31 @@ def test_refinement_lowers_the_error_and_moves_only_the_global_bases():
     assert torch.equal(output.weights, weights) and torch.equal(output.deviations, deviations)
 
 
+def test_refinement_can_keep_the_normals_and_be_pulled_to_the_prediction():
+    truth = material(5)
+    photos, lights = flash_photos(truth, torch.tensor([[0.2, 0.1]]))
+    output = OracleModel(truth)(None)
+    wrong = torch.tensor([0.3, -0.2, 0.0, 0.3, -0.2, 0.25, 0.4, -0.3, 0.2, 0.1]).view(1, 1, 10)
+    output.global_bases = output.global_bases + wrong
+    predicted = output.global_bases.clone()
+
+    def refine(**options):
+        return refine_global_bases(output, photos[0], lights[0], 45.0, "physical", steps=60, resolution=32, lr=0.02,
+                                   **options)[0]
+
+    free, kept = refine(), refine(refine_normals=False)
+    assert not torch.allclose(free[..., :3], predicted[..., :3], atol=1e-3)
+    assert torch.equal(kept[..., :3], predicted[..., :3])
+    assert not torch.allclose(kept[..., 3:], predicted[..., 3:], atol=1e-3)
+    # An L1 pull of weight w stops a basis parameter from moving once the photo term's gradient on
+    # it falls below w / 10 (the mean over 10 channels); a pull far stronger than any photo gradient
+    # leaves the bases within the Adam step size of where they started (the refinement keeps them
+    # inside the signed space [-1, 1]).
+    pulled = refine(prior=1000.0)
+    assert (pulled - predicted.clamp(-1.0, 1.0)).abs().max() < 0.05
+    assert (free - predicted).abs().max() > 0.2
+
+
 def test_field_of_view_from_the_exif_focal_length():
     # A 36 x 24 frame with a 50 mm lens sees 39.6 deg across its width; its centre 24 x 24 square less.
     assert field_of_view_from_focal(50.0, 3600, 2400) == pytest.approx(2 * math.degrees(math.atan(12 / 50)), rel=1e-6)

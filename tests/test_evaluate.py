@@ -96,7 +96,7 @@ def test_evaluation_is_seeded_and_skips_a_corrupt_material(dataset, tmp_path):
     assert a["n_materials"] == 3 and a["skipped"] == 1
     for key in ("maps_rmse", "render_rmse", "render_flip", "render_ssim"):
         assert a[key] == b[key], key
-    assert set(a["rows"]) == {"model (no refinement)", "model + refinement (3 steps)", "trivial"}
+    assert set(a["rows"]) == {"model (no refinement)", "model + refinement (3 steps, normals kept)", "trivial"}
     assert a["render_rmse_torch_reference"] == pytest.approx(a["render_rmse"], rel=1e-3)
     for name in ("summary.json", "per_material.csv", "table.md", "bars.png", "gallery.png"):
         assert (tmp_path / "a" / name).is_file(), name

@@ -1,0 +1,110 @@
+"""Does refining the global bases help? Variants of the refinement on the shared test materials.
+
+    .venv/bin/python benchmarks/refinement.py [--every 3] [--steps 500] [--model PATH]
+
+Every ``--every``-th of the 84 shared materials is re-rendered under its seeded hand-held offset
+(the offsets of ``mideepbasis evaluate``), the model predicts once with the offset known, and each
+variant refines that one prediction: no refinement, all channels (the paper), all channels with a
+pull toward the network's bases, and d, r, s only (normals kept), each at the given step count
+and at half of it. Reported per variant: map RMSE (stored encoding), re-rendering RMSE under the
+30 random lights and views of ``evaluate``, the mean L1 between the photo and the material rendered
+under the photo's flash (what the refinement minimises), and the seconds per material. Writes benchmarks/results/refinement.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import mideepbasis  # noqa: F401
+import torch
+from common import RESULTS, write_report
+from tqdm import tqdm
+
+from mideepbasis import geometry
+from mideepbasis.capture import CaptureConfig, maps_from_bases, predict, refine_global_bases
+from mideepbasis.evaluate import (EvaluationConfig, evaluation_offsets, flash_photos, load_evaluation_set,
+                                  random_lights_and_views, score)
+from mideepbasis.model.checkpoint import load_model
+from mideepbasis.render import render_flash
+
+SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
+
+
+def variants(steps: int) -> dict[str, dict]:
+    """Name -> refine_global_bases keyword arguments (steps 0: the network's prediction as is)."""
+    half = steps // 2
+    return {
+        "none": {"steps": 0},
+        f"all channels, {steps} steps (paper)": {"steps": steps},
+        f"all channels + prior 0.1, {steps} steps": {"steps": steps, "prior": 0.1},
+        f"d, r, s only, {steps} steps": {"steps": steps, "refine_normals": False},
+        f"d, r, s only, {half} steps": {"steps": half, "refine_normals": False},
+        f"d, r, s only + prior 0.1, {steps} steps": {"steps": steps, "refine_normals": False, "prior": 0.1},
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
+    parser.add_argument("--data", type=Path, default=SHARED_TEST)
+    parser.add_argument("--every", type=int, default=3, help="use every k-th material")
+    parser.add_argument("--steps", type=int, default=CaptureConfig().refine_steps)
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "refinement.json")
+    args = parser.parse_args()
+
+    if not args.data.is_dir():
+        raise SystemExit(f"{args.data}: shared test data not found")
+    model = load_model(args.model)
+    convention, extent = model.config.convention, model.config.plane_extent
+    defaults, seed = CaptureConfig(), EvaluationConfig(data="").seed
+    names, truth, _ = load_evaluation_set(args.data, "deschaintre5")
+    fov = EvaluationConfig(data="").fov
+    offsets = evaluation_offsets(len(truth), seed, fov)
+    chosen = list(range(0, len(truth), args.every))
+    lights, views = random_lights_and_views(seed=seed)
+
+    table = variants(args.steps)
+    predictions = {name: [] for name in table}
+    photo_l1 = {name: [] for name in table}
+    seconds = {name: 0.0 for name in table}
+    for index in tqdm(chosen, desc="materials", unit="material"):
+        photos, flash = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention, extent)
+        position = geometry.light_positions(offsets[index].view(1, 2), fov)
+        output = predict(model, photos, position, fov)
+        for name, options in table.items():
+            started = time.perf_counter()
+            if options["steps"]:
+                bases, _ = refine_global_bases(output, photos[0], position[0], fov, convention,
+                                               resolution=defaults.refine_resolution, lr=defaults.refine_lr,
+                                               extent=extent, **options)
+                maps = maps_from_bases(output, bases).cpu()
+            else:
+                maps = output.maps.cpu()
+            seconds[name] += time.perf_counter() - started
+            predictions[name].append(maps)
+            # How well the material explains the photo it came from (what the refinement minimises).
+            rendered = render_flash(maps, position.view(1, 1, 3), fov=fov, convention=convention, extent=extent)
+            photo_l1[name].append(float((rendered[:, 0].clamp(0.0, 1.0) - photos).abs().mean()))
+
+    rows = {}
+    subset = truth[chosen]
+    for name in table:
+        metrics = score(torch.cat(predictions[name]), subset, lights, views, convention)
+        means = {key: float(value.mean()) for key, value in metrics.items()}
+        rows[name] = {"maps_rmse": {k: means[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
+                      "render_rmse": means["render_rmse"], "render_flip": means["render_flip"],
+                      "photo_l1": sum(photo_l1[name]) / len(chosen),
+                      "seconds_per_material": seconds[name] / len(chosen), **table[name]}
+        maps = rows[name]["maps_rmse"]
+        print(f"{name:42s} n {maps['normal']:.4f} d {maps['diffuse']:.4f} r {maps['roughness']:.4f} "
+              f"s {maps['specular']:.4f} | render {rows[name]['render_rmse']:.4f} flip {rows[name]['render_flip']:.4f} "
+              f"| photo L1 {rows[name]['photo_l1']:.4f} | {rows[name]['seconds_per_material']:.2f} s")
+    write_report(args.output, "refinement", {"model": str(args.model or "shipped"), "materials": len(chosen),
+                                             "every": args.every, "light": "known", "rows": rows,
+                                             "names": [names[i] for i in chosen]})
+
+
+if __name__ == "__main__":
+    main()
