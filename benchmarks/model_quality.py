@@ -3,7 +3,8 @@
     .venv/bin/python benchmarks/model_quality.py [--model PATH] [-o benchmarks/results/model_quality.json]
 
 Inputs are rendered from the ground-truth maps (used as stored) under the centred flash with the
-model's shading convention and quantised to 8-bit sRGB; the model predicts the maps at 256x256.
+model's shading convention and quantised to 8-bit sRGB; the model predicts the maps at 256x256
+(the network at its training resolution, as ``capture`` runs it, unless ``--network-resolution``).
 Reported: map RMSE of normal, diffuse, roughness and specular in the stored encoding, and the RMSE
 of re-renderings under 30 seeded random lights and views per material (clipped, sRGB-encoded),
 for the model and for the trivial baseline (flat normal and the set's mean maps). The paper's
@@ -20,7 +21,7 @@ import mideepbasis  # noqa: F401
 import torch
 from common import RESULTS, write_report
 
-from mideepbasis.capture import predict
+from mideepbasis.capture import predict, trained_resolution
 from mideepbasis.data.datasets import DeschaintreDataset
 from mideepbasis.evaluate import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
 from mideepbasis.model.checkpoint import load_model, shipped_model_path
@@ -36,7 +37,8 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=SHARED_TEST)
     parser.add_argument("--batch", type=int, default=6)
     parser.add_argument("--network-resolution", type=int, default=None,
-                        help="run the network on photos resampled to this size and upsample its maps (default: as is)")
+                        help="largest resolution the network runs at (default: the model's training resolution, "
+                             "as in capture; 0: 256, the materials' own)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "model_quality.json")
     args = parser.parse_args()
 
@@ -53,15 +55,7 @@ def main() -> None:
     for first in range(0, len(materials), args.batch):
         truth = materials[first:first + args.batch]
         photos, flash = flash_photos(truth, torch.zeros(len(truth), 2), convention=convention)
-        size = photos.shape[-1]
-        if args.network_resolution and args.network_resolution != size:
-            small = torch.nn.functional.interpolate(photos, size=args.network_resolution, mode="area")
-            maps = predict(model, small, flash).maps.cpu()
-            maps = torch.nn.functional.interpolate(maps, size=size, mode="bilinear", align_corners=False)
-            maps[:, :3] = torch.nn.functional.normalize(maps[:, :3], dim=1)
-            predictions.append(maps)
-        else:
-            predictions.append(predict(model, photos, flash).maps.cpu())
+        predictions.append(predict(model, photos, flash, network_resolution=args.network_resolution).maps.cpu())
     predicted = torch.cat(predictions)
     seconds = time.perf_counter() - start
     baseline = trivial_baseline(materials).expand_as(materials)
@@ -73,7 +67,8 @@ def main() -> None:
                             for i in range(0, len(materials), 6)])
         rows[name] = {**{k: round(float(v.mean()), 4) for k, v in maps.items()}, "render_rmse": round(float(render.mean()), 4)}
     report = {"model": str(args.model or shipped_model_path()), "convention": convention, "materials": len(materials),
-              "network_resolution": args.network_resolution or 256, "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
+              "network_resolution": (args.network_resolution if args.network_resolution is not None
+                                     else trained_resolution(model)) or 256, "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
               "prediction_seconds": round(seconds, 1), "rows": rows, "paper_deepbasis_122_scenes": PAPER,
               "trivial_quoted_in_issue": TRIVIAL_QUOTED, "per_material_names": names}
     write_report(args.output, "model_quality", report)

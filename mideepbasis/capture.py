@@ -86,6 +86,11 @@ class CaptureConfig:
     refine_prior: float = 0.0
     """Weight of the L1 pull of the refined global bases toward the network's (0: none)."""
 
+    network_resolution: int | None = None
+    """Largest resolution the network runs at [pixels]; a larger photo is predicted on a
+    downsampled copy and the weights and deviations upsampled. None: the resolution the model was
+    trained at (from its checkpoint); 0: no limit."""
+
     search_grid: int = 21
     """Candidates per side of the lighting search's square grid over the offsets within delta."""
 
@@ -224,13 +229,37 @@ def _working_resolution(side: int, resolution: int | str) -> int:
 # --- prediction -------------------------------------------------------------------------------------
 
 
-def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
-            fov: float = constants.DEFAULT_FOV_DEG) -> DeepBasisOutput:
-    """One network pass: the material seen in ``photos`` taken with flashes at ``lights``.
+def trained_resolution(model: DeepBasisNet) -> int | None:
+    """The resolution [pixels] ``model`` was trained at, as its checkpoint records it (None: unknown)."""
+    document = getattr(model, "checkpoint", None) or {}
+    size = (document.get("training") or {}).get("config", {}).get("size")
+    return int(size) if size else None
 
-    Photos whose size is not a multiple of the network's stride are padded by reflection and the
-    prediction cropped back.
+
+def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
+            fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None) -> DeepBasisOutput:
+    """The material seen in ``photos`` (B, 3, H, W) taken with flashes at ``lights`` (B, 3).
+
+    The network runs at most at ``network_resolution`` [pixels] (None: the resolution the model was
+    trained at, when its checkpoint says; 0: no limit). A larger photo is predicted on an
+    area-downsampled copy, and its blending weights and local deviations are upsampled to the
+    photo's size, so the maps, the refinement and everything after work at full resolution. A
+    fully convolutional network run at a larger scale than it was trained at sees every feature
+    bigger than in training; on the shared test set the shipped model (trained at 128 px) gave
+    lower errors at 128 px upsampled than run at 256 px (benchmarks/model_quality.py).
     """
+    limit = trained_resolution(model) if network_resolution is None else network_resolution
+    height, width = photos.shape[-2:]
+    if not limit or max(height, width) <= limit:
+        return _network_pass(model, photos, lights, fov)
+    scale = limit / max(height, width)
+    small = F.interpolate(photos, size=(max(1, round(height * scale)), max(1, round(width * scale))), mode="area")
+    return _upsample_output(_network_pass(model, small, lights, fov), height, width)
+
+
+def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor, fov: float) -> DeepBasisOutput:
+    """One network pass at the photos' own size; a size that is not a multiple of the network's
+    stride is padded by reflection and the prediction cropped back."""
     device = next(model.parameters()).device
     height, width = photos.shape[-2:]
     stride = model.config.stride
@@ -244,6 +273,31 @@ def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
     if pad_h or pad_w:
         output = _crop_output(output, height, width)
     return output
+
+
+def _upsample_output(output: DeepBasisOutput, height: int, width: int) -> DeepBasisOutput:
+    """The prediction at height x width: weights and local deviations (or, without bases, the
+    maps) upsampled bilinearly, and the maps rebuilt from them."""
+    def upsample(value):
+        flat = value.reshape(value.shape[0], -1, *value.shape[-2:])
+        big = F.interpolate(flat, size=(height, width), mode="bilinear", align_corners=False)
+        return big.reshape(*value.shape[:-2], height, width)
+
+    if output.weights is None:
+        signed = upsample(output.signed_maps)
+        return DeepBasisOutput(maps=to_maps(signed), extras={"signed_maps": signed})
+    # Bilinear interpolation keeps the weights non-negative and summing to one.
+    weights = upsample(output.weights)
+    deviations = upsample(output.deviations) if output.deviations is not None else None
+    result = DeepBasisOutput(maps=None, weights=weights, global_bases=output.global_bases, deviations=deviations,
+                             error=upsample(output.error) if output.error is not None else None)
+    if deviations is not None:
+        result.bases = normalize_basis_normals(output.global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
+        signed = blend(weights, result.bases)
+    else:
+        signed = blend(weights, output.global_bases)
+    result.maps, result.extras["signed_maps"] = to_maps(signed), signed
+    return result
 
 
 def _crop_output(output: DeepBasisOutput, height: int, width: int) -> DeepBasisOutput:
@@ -313,7 +367,8 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
     history = []
     output = None
     for index in range(config.search_passes):
-        output = predict(model, photo[None], geometry.light_positions(current[None], fov), fov)
+        output = predict(model, photo[None], geometry.light_positions(current[None], fov), fov,
+                         config.network_resolution)
         small_maps = _downsample_maps(output.maps.cpu(), config.search_resolution)
         errors = light_objective(small_maps, small_photo, candidates, fov, convention, extent=model.config.plane_extent)
         best = candidates[int(torch.argmin(errors))]
@@ -459,7 +514,7 @@ def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path |
     else:
         offset = (float(config.light[0]), float(config.light[1]))
     light = geometry.light_positions(torch.tensor(offset, dtype=torch.float32), fov)
-    output = predict(model, photo[None], light[None], fov)
+    output = predict(model, photo[None], light[None], fov, config.network_resolution)
     timings["predict"] = time.perf_counter() - start
 
     losses = []

@@ -105,6 +105,9 @@ def _add_capture(subparsers) -> None:
                         help="let the refinement turn the global bases' normals too (the paper's refinement)")
     parser.add_argument("--resolution", type=_resolution, default=defaults.resolution, metavar="N|native",
                         help="working resolution [pixels], or native (up to 2048)")
+    parser.add_argument("--network-resolution", type=int, default=None, metavar="N",
+                        help="largest resolution the network runs at [pixels] (default: the model's training "
+                             "resolution; 0: the working resolution)")
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
@@ -135,7 +138,8 @@ def _run_capture(args) -> int:
     check_output(args.output, args.overwrite)
     model = load_model(args.model)
     config = CaptureConfig(fov=args.fov, light=args.light, refine_steps=args.refine_steps,
-                           refine_normals=args.refine_normals, resolution=args.resolution)
+                           refine_normals=args.refine_normals, resolution=args.resolution,
+                           network_resolution=args.network_resolution)
     failures = []
     for photo in tqdm(photos, desc="capturing", unit="photo", disable=single):
         target = args.output if single else args.output / photo.stem
@@ -237,6 +241,9 @@ def _add_evaluate(subparsers) -> None:
     parser.add_argument("--baselines", action="store_true", help="also trivial, direct, unrefined and refined rows")
     parser.add_argument("--direct-model", type=Path, default=None, help="checkpoint of the direct (no bases) network")
     parser.add_argument("--lighting", action="store_true", help="lighting-search accuracy and robustness to the offset")
+    parser.add_argument("--network-resolution", type=int, default=None, metavar="N",
+                        help="largest resolution the network runs at [pixels] (default: the model's training "
+                             "resolution; 0: the materials' own)")
     parser.add_argument("--limit", type=_positive_int, default=None, help="only the first N materials")
     parser.add_argument("--resolution", type=_positive_int, default=None, help="resample the materials first [pixels]")
     parser.add_argument("--seed", type=int, default=0)
@@ -254,7 +261,8 @@ def _run_evaluate(args) -> None:
                               refine_steps=args.refine_steps, refine_normals=args.refine_normals,
                               baselines=args.baselines,
                               direct_model=str(args.direct_model) if args.direct_model else None,
-                              lighting=args.lighting, seed=args.seed, limit=args.limit, resolution=args.resolution)
+                              lighting=args.lighting, seed=args.seed, limit=args.limit, resolution=args.resolution,
+                              network_resolution=args.network_resolution)
     summary = run_evaluation(config)
     print((args.output / "table.md").read_text())
     for note in summary["notes"]:

@@ -272,6 +272,10 @@ class EvaluationConfig:
     refine_normals: bool = False
     """Whether the refinement may turn the global bases' normals (the paper's refinement)."""
 
+    network_resolution: int | None = None
+    """Largest resolution the network runs at [pixels] (None: the model's training resolution; 0: no
+    limit), as in ``capture``."""
+
     baselines: bool = False
     """Add the trivial, direct (``direct_model``), unrefined and refined rows."""
 
@@ -364,7 +368,7 @@ def score(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, vi
 
 
 def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine_steps: int,
-                 progress: bool, label: str, refine_normals: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+                 progress: bool, label: str, refine_normals: bool = False, network_resolution: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine_steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
     import time
@@ -380,12 +384,12 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
         photos, lights = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention,
                                       model.config.plane_extent)
         if light == "search":
-            found, history, _ = search_light(model, photos[0], fov, CaptureConfig())
+            found, history, _ = search_light(model, photos[0], fov, CaptureConfig(network_resolution=network_resolution))
             offset = torch.tensor(found)
         else:
             offset, history = offsets[index], []
         position = geometry.light_positions(offset.view(1, 2), fov)
-        output = predict(model, photos, position, fov)
+        output = predict(model, photos, position, fov, network_resolution)
         plain.append(output.maps.cpu())
         seconds = time.perf_counter() - started
         refine_seconds = 0.0
@@ -434,7 +438,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
 
     steps = config.refine_steps or (CaptureConfig().refine_steps if config.baselines else 0)
     plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model",
-                                           config.refine_normals)
+                                           config.refine_normals, config.network_resolution)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
     kept = "" if config.refine_normals else ", normals kept"
@@ -456,7 +460,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
         if direct is not None:
             start = time.perf_counter()
             predictions["direct (no bases)"], _, _ = _predict_all(direct, truth, offsets, config.fov, "known", 0, progress,
-                                                                  "direct")
+                                                                  "direct", network_resolution=config.network_resolution)
             rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
             per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention, lpips)
         else:
@@ -468,7 +472,8 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     summary = {"n_materials": len(truth), "skipped": skipped, "data": str(config.data), "format": config.format,
                "resolution": truth.shape[-1],
                "model": config.model or "shipped", "convention": convention, "light": config.light,
-               "refine_steps": config.refine_steps, "refine_normals": config.refine_normals, "row": main_row,
+               "refine_steps": config.refine_steps, "refine_normals": config.refine_normals,
+               "network_resolution": config.network_resolution, "row": main_row,
                "maps_rmse": {k: main[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
                "render_rmse": main["render_rmse"], "render_flip": main["render_flip"], "render_ssim": main["render_ssim"],
                "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),
@@ -500,6 +505,7 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
     from .data.synth import sample_offsets
 
     convention = model.config.convention
+    capture_config = CaptureConfig(network_resolution=config.network_resolution)
     errors = {group: [] for group in ROUGHNESS_GROUPS}
     for index in tqdm(range(len(truth)), desc="lighting search", unit="material", disable=not progress):
         roughness = float(truth[index, 6].mean())
@@ -507,7 +513,7 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
         offsets = sample_offsets(offsets_per_material, torch.Generator().manual_seed(config.seed + 1000 + index), config.fov)
         for offset in offsets:
             photos, _ = flash_photos(truth[index:index + 1], offset.view(1, 2), config.fov, convention)
-            found, _, _ = search_light(model, photos[0], config.fov, CaptureConfig())
+            found, _, _ = search_light(model, photos[0], config.fov, capture_config)
             errors[group].append(light_error_deg(found, offset.tolist(), config.fov))
     table = {group: {"count": len(v), "mean_deg": float(np.mean(v)) if v else None,
                      "median_deg": float(np.median(v)) if v else None,
@@ -529,9 +535,9 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
             photos, lights_true = flash_photos(truth[index:index + 1], offsets[index:index + 1], config.fov, convention)
             position = lights_true
             if config.light == "search":
-                found, _, _ = search_light(model, photos[0], config.fov, CaptureConfig())
+                found, _, _ = search_light(model, photos[0], config.fov, capture_config)
                 position = geometry.light_positions(torch.tensor([found]), config.fov)
-            predicted = predict(model, photos, position, config.fov).maps.cpu()
+            predicted = predict(model, photos, position, config.fov, config.network_resolution).maps.cpu()
             rmse = map_rmse(predicted, truth[index:index + 1])
             maps_rmse.append(float(sum(v[0] for v in rmse.values()) / 4))
             render_rmse.append(float(rerender_rmse(predicted, truth[index:index + 1], lights, views, convention)[0]))

@@ -9,16 +9,17 @@ import warnings
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from PIL import Image
 
 from mideepbasis import cli, constants
-from mideepbasis.capture import (CaptureConfig, capture, field_of_view_from_focal, load_photo, maps_from_bases,
-                                 refine_global_bases, search_light)
+from mideepbasis.capture import (CaptureConfig, capture, field_of_view_from_focal, load_photo, maps_from_bases, predict,
+                                 refine_global_bases, search_light, trained_resolution)
 from mideepbasis.evaluate import flash_photos, light_error_deg
 from mideepbasis.export import save_capture
 from mideepbasis.imageio import write_image
 from mideepbasis.material import Material
-from mideepbasis.model.checkpoint import save_checkpoint
+from mideepbasis.model.checkpoint import load_model, save_checkpoint
 from mideepbasis.model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, to_signed
 from mideepbasis.render import render_flash
 
@@ -110,6 +111,27 @@ def test_refinement_can_keep_the_normals_and_be_pulled_to_the_prediction():
     pulled = refine(prior=1000.0)
     assert (pulled - predicted.clamp(-1.0, 1.0)).abs().max() < 0.05
     assert (free - predicted).abs().max() > 0.2
+
+
+def test_the_network_runs_at_its_training_resolution_and_the_prediction_is_upsampled(tmp_path):
+    torch.manual_seed(0)
+    path = save_checkpoint(tmp_path / "m.safetensors", DeepBasisNet(preset("tiny")).eval(),
+                           metadata={"training": {"config": {"size": 32}}})
+    model = load_model(path)
+    assert trained_resolution(model) == 32
+    truth = material(7, size=64)
+    photos, lights = flash_photos(truth, torch.tensor([[0.1, -0.2]]))
+    limited = predict(model, photos, lights)
+    assert limited.maps.shape == (1, 10, 64, 64) and limited.deviations.shape[-2:] == (64, 64)
+    torch.testing.assert_close(limited.weights.sum(dim=1), torch.ones(1, 64, 64), atol=1e-5, rtol=0)
+    # The global bases are those of the 32 px photo; the maps are the blend of the upsampled
+    # weights and deviations (what the refinement and the exports use).
+    small = predict(model, F.interpolate(photos, size=(32, 32), mode="area"), lights)
+    torch.testing.assert_close(limited.global_bases, small.global_bases)
+    torch.testing.assert_close(limited.maps, maps_from_bases(limited, limited.global_bases), atol=1e-5, rtol=0)
+    torch.testing.assert_close(limited.weights, F.interpolate(small.weights, size=(64, 64), mode="bilinear"))
+    full = predict(model, photos, lights, network_resolution=0)
+    assert not torch.allclose(full.global_bases, small.global_bases, atol=1e-4)
 
 
 def test_field_of_view_from_the_exif_focal_length():
