@@ -8,7 +8,7 @@ reports the median wall time of the repeats [s]:
 
 - ``known_light``: prediction with the flash offset given (no search, no refinement);
 - ``search``: lighting search and prediction;
-- ``search_refine``: lighting search, prediction and the default refinement (250 steps, normals kept);
+- ``search_refine``: lighting search, prediction and the default refinement (125 steps, normals kept);
 - ``search_refine_paper``: the same with the paper's refinement (500 steps, normals refined too);
 - ``command``: the whole ``mideepbasis capture`` command, start-up and all outputs included;
 - ``search_refine_1024``: as ``search_refine`` with the photo processed at 1024x1024.

@@ -5,10 +5,11 @@
 Every ``--every``-th of the 84 shared materials is re-rendered under its seeded hand-held offset
 (the offsets of ``mideepbasis evaluate``), the model predicts once with the offset known, and each
 variant refines that one prediction: no refinement, all channels (the paper), all channels with a
-pull toward the network's bases, and d, r, s only (normals kept), each at the given step count
-and at half of it. Reported per variant: map RMSE (stored encoding), re-rendering RMSE under the
-30 random lights and views of ``evaluate``, the mean L1 between the photo and the material rendered
-under the photo's flash (what the refinement minimises), and the seconds per material. Writes benchmarks/results/refinement.json.
+pull toward the network's bases, and d, r, s only (normals kept), at the given step count (the
+paper's 500) and at a half and a quarter of it. Reported per variant: map RMSE (stored encoding),
+re-rendering RMSE under the 30 random lights and views of ``evaluate``, the mean L1 between the
+photo and the material rendered under the photo's flash (what the refinement minimises), and the
+seconds per material. Writes benchmarks/results/refinement.json.
 """
 
 from __future__ import annotations
@@ -34,14 +35,15 @@ SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschai
 
 def variants(steps: int) -> dict[str, dict]:
     """Name -> refine_global_bases keyword arguments (steps 0: the network's prediction as is)."""
-    half = steps // 2
+    half, quarter = steps // 2, steps // 4
     return {
         "none": {"steps": 0},
         f"all channels, {steps} steps (paper)": {"steps": steps},
         f"all channels + prior 0.1, {steps} steps": {"steps": steps, "prior": 0.1},
         f"d, r, s only, {steps} steps": {"steps": steps, "refine_normals": False},
         f"d, r, s only, {half} steps": {"steps": half, "refine_normals": False},
-        f"d, r, s only + prior 0.1, {steps} steps": {"steps": steps, "refine_normals": False, "prior": 0.1},
+        f"d, r, s only, {quarter} steps": {"steps": quarter, "refine_normals": False},
+        f"d, r, s only + prior 0.1, {half} steps": {"steps": half, "refine_normals": False, "prior": 0.1},
     }
 
 
@@ -50,7 +52,7 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--data", type=Path, default=SHARED_TEST)
     parser.add_argument("--every", type=int, default=3, help="use every k-th material")
-    parser.add_argument("--steps", type=int, default=CaptureConfig().refine_steps)
+    parser.add_argument("--steps", type=int, default=500, help="the paper's step count; variants also use 1/2 and 1/4")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "refinement.json")
     args = parser.parse_args()
 

@@ -68,9 +68,9 @@ class CaptureConfig:
     resolution: int | str = constants.DEFAULT_RESOLUTION
     """Working resolution [pixels], or ``native`` (the photo's own, up to 2048)."""
 
-    refine_steps: int = 250
+    refine_steps: int = 125
     """Adam steps refining the global bases; 0 turns refinement off. (The paper: 500; with the
-    normals kept, 250 do as well here: benchmarks/refinement.py.)"""
+    normals kept, 125 did as well here: benchmarks/refinement.py.)"""
 
     refine_resolution: int = 64
     """Resolution of the refinement's renders [pixels]."""

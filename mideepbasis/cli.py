@@ -1,6 +1,6 @@
 """The ``mideepbasis`` command. Thin: parse arguments, call the library, print one line per error.
 
-    mideepbasis capture PHOTO [PHOTO ...] -o OUT [--fov DEG] [--light TX,TY] [--refine-steps 250]
+    mideepbasis capture PHOTO [PHOTO ...] -o OUT [--fov DEG] [--light TX,TY] [--refine-steps 125]
                         [--refine-normals] [--resolution N|native] [--model PATH] [--exr] [--overwrite]
     mideepbasis render MATERIAL_DIR -o OUT.exr [--light flash|env] [--fov 45] [--offset TX,TY]
                        [--spp N] [--convention physical|deepbasis] [--env studio|sunsky|FILE]
