@@ -104,6 +104,12 @@ class CaptureConfig:
     search_passes: int = 6
     """Most network passes of the lighting search."""
 
+    search_prior: float = 0.02
+    """Weight of the squared offset [patch half-widths^2] added to the search's objective (mean L1),
+    a pull toward the centre where the photo does not decide; 0: none. On held-out procedural
+    materials (not the test set) 0.02 lowered the mean angular error from 4.72 to 4.07 deg
+    (benchmarks/search_prior.py)."""
+
     max_offset_deg: float = constants.MAX_OFFSET_DEG
     """Largest hand-held offset searched [deg] (delta)."""
 
@@ -371,6 +377,7 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
                          config.network_resolution)
         small_maps = _downsample_maps(output.maps.cpu(), config.search_resolution)
         errors = light_objective(small_maps, small_photo, candidates, fov, convention, extent=model.config.plane_extent)
+        errors = errors + config.search_prior * candidates.square().sum(dim=-1)
         best = candidates[int(torch.argmin(errors))]
         history.append({"pass": index + 1, "offset": current.tolist(), "best_candidate": best.tolist(),
                         "objective": float(errors.min())})
@@ -381,6 +388,7 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
     step = 2 * geometry.max_offset(fov, config.max_offset_deg) / max(1, config.search_grid - 1)
     fine = candidate_offsets(fov, config.max_offset_deg, 9, centre=tuple(current.tolist()), span=step)
     errors = light_objective(small_maps, small_photo, fine, fov, convention, extent=model.config.plane_extent)
+    errors = errors + config.search_prior * fine.square().sum(dim=-1)
     current = fine[int(torch.argmin(errors))]
     history.append({"pass": "fine", "offset": current.tolist(), "objective": float(errors.min())})
     return (float(current[0]), float(current[1])), history, output

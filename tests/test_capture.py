@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -67,6 +68,20 @@ def test_lighting_search_finds_the_flash(seed, offset_deg):
     found, history, _ = search_light(OracleModel(truth), photos[0], 45.0, CaptureConfig(search_resolution=64))
     assert light_error_deg(found, offset[0].tolist()) < 1.0, (found, offset, history)
     assert 2 <= len(history) <= CaptureConfig().search_passes + 1
+
+
+def test_the_search_prior_pulls_toward_the_centre_only_where_the_photo_does_not_decide():
+    truth = material(8)
+    height = constants.camera_height(45.0)
+    offset = torch.tensor([[height * math.tan(math.radians(a)) for a in (-10.0, 3.0)]])
+    photos, _ = flash_photos(truth, offset)
+    config = CaptureConfig(search_resolution=64)
+    # The default weight leaves a clear highlight where it is ...
+    found, _, _ = search_light(OracleModel(truth), photos[0], 45.0, config)
+    assert light_error_deg(found, offset[0].tolist()) < 1.0
+    # ... and one far stronger than any photo error (mean L1 <= 1) puts the flash at the centre.
+    centred, _, _ = search_light(OracleModel(truth), photos[0], 45.0, replace(config, search_prior=100.0))
+    assert centred == pytest.approx((0.0, 0.0), abs=1e-6)
 
 
 def test_refinement_lowers_the_error_and_moves_only_the_global_bases():
