@@ -23,7 +23,8 @@ import torch
 from common import RESULTS, write_report
 
 from mideepbasis.evaluate import (PAPER_DEEPBASIS, RERENDER_COUNT, EvaluationConfig, _resize_maps, load_evaluation_set,
-                                  random_lights_and_views, run_evaluation, score, trivial_baseline)
+                                  random_lights_and_views, run_evaluation, score, summary_scores,
+                                  trivial_baseline)
 from mideepbasis.train import TrainConfig, train
 
 HERE = Path(__file__).parent
@@ -53,9 +54,7 @@ def trivial_row(size: int, convention: str = "physical") -> dict:
     truth = torch.stack([_resize_maps(m, size) for m in truth])
     lights, views = random_lights_and_views(RERENDER_COUNT, EvaluationConfig(data="").seed)
     metrics = score(trivial_baseline(truth).expand_as(truth), truth, lights, views, convention, None)
-    means = {key: float(value.mean()) for key, value in metrics.items()}
-    return {"maps_rmse": {k: means[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
-            "render_rmse": means["render_rmse"], "render_flip": means["render_flip"], "train_seconds": 0.0}
+    return {**summary_scores({key: float(value.mean()) for key, value in metrics.items()}), "train_seconds": 0.0}
 
 
 def slug(name: str) -> str:

@@ -21,7 +21,7 @@ import mideepbasis  # noqa: F401
 import torch
 from common import RESULTS, write_report
 
-from mideepbasis.capture import predict, trained_resolution
+from mideepbasis.capture import network_resolution_limit, predict
 from mideepbasis.data.datasets import DeschaintreDataset
 from mideepbasis.evaluate import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
 from mideepbasis.model.checkpoint import load_model, shipped_model_path
@@ -67,8 +67,7 @@ def main() -> None:
                             for i in range(0, len(materials), 6)])
         rows[name] = {**{k: round(float(v.mean()), 4) for k, v in maps.items()}, "render_rmse": round(float(render.mean()), 4)}
     report = {"model": str(args.model or shipped_model_path()), "convention": convention, "materials": len(materials),
-              "network_resolution": (args.network_resolution if args.network_resolution is not None
-                                     else trained_resolution(model)) or 256, "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
+              "network_resolution": network_resolution_limit(model, args.network_resolution) or 256, "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
               "prediction_seconds": round(seconds, 1), "rows": rows, "paper_deepbasis_122_scenes": PAPER,
               "trivial_quoted_in_issue": TRIVIAL_QUOTED, "per_material_names": names}
     write_report(args.output, "model_quality", report)

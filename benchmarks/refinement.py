@@ -26,7 +26,7 @@ from tqdm import tqdm
 from mideepbasis import geometry
 from mideepbasis.capture import CaptureConfig, maps_from_bases, predict, refine_global_bases
 from mideepbasis.evaluate import (EvaluationConfig, evaluation_offsets, flash_photos, load_evaluation_set,
-                                  random_lights_and_views, score)
+                                  random_lights_and_views, score, summary_scores)
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.render import render_flash
 
@@ -60,9 +60,9 @@ def main() -> None:
         raise SystemExit(f"{args.data}: shared test data not found")
     model = load_model(args.model)
     convention, extent = model.config.convention, model.config.plane_extent
-    defaults, seed = CaptureConfig(), EvaluationConfig(data="").seed
+    defaults, evaluation = CaptureConfig(), EvaluationConfig(data="")
+    seed, fov = evaluation.seed, evaluation.fov
     names, truth, _ = load_evaluation_set(args.data, "deschaintre5")
-    fov = EvaluationConfig(data="").fov
     offsets = evaluation_offsets(len(truth), seed, fov)
     chosen = list(range(0, len(truth), args.every))
     lights, views = random_lights_and_views(seed=seed)
@@ -94,9 +94,7 @@ def main() -> None:
     subset = truth[chosen]
     for name in table:
         metrics = score(torch.cat(predictions[name]), subset, lights, views, convention)
-        means = {key: float(value.mean()) for key, value in metrics.items()}
-        rows[name] = {"maps_rmse": {k: means[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
-                      "render_rmse": means["render_rmse"], "render_flip": means["render_flip"],
+        rows[name] = {**summary_scores({key: float(value.mean()) for key, value in metrics.items()}),
                       "photo_l1": sum(photo_l1[name]) / len(chosen),
                       "seconds_per_material": seconds[name] / len(chosen), **table[name]}
         maps = rows[name]["maps_rmse"]

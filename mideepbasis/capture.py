@@ -242,6 +242,12 @@ def trained_resolution(model: DeepBasisNet) -> int | None:
     return int(size) if size else None
 
 
+def network_resolution_limit(model: DeepBasisNet, requested: int | None = None) -> int | None:
+    """The largest resolution [pixels] ``predict`` runs ``model`` at: ``requested``, or when it is
+    None the model's training resolution; None (or 0) means no limit."""
+    return trained_resolution(model) if requested is None else requested or None
+
+
 def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
             fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None) -> DeepBasisOutput:
     """The material seen in ``photos`` (B, 3, H, W) taken with flashes at ``lights`` (B, 3).
@@ -254,7 +260,7 @@ def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
     bigger than in training; on the shared test set the shipped model (trained at 128 px) gave
     lower errors at 128 px upsampled than run at 256 px (benchmarks/model_quality.py).
     """
-    limit = trained_resolution(model) if network_resolution is None else network_resolution
+    limit = network_resolution_limit(model, network_resolution)
     height, width = photos.shape[-2:]
     if not limit or max(height, width) <= limit:
         return _network_pass(model, photos, lights, fov)
@@ -293,16 +299,10 @@ def _upsample_output(output: DeepBasisOutput, height: int, width: int) -> DeepBa
         signed = upsample(output.signed_maps)
         return DeepBasisOutput(maps=to_maps(signed), extras={"signed_maps": signed})
     # Bilinear interpolation keeps the weights non-negative and summing to one.
-    weights = upsample(output.weights)
-    deviations = upsample(output.deviations) if output.deviations is not None else None
-    result = DeepBasisOutput(maps=None, weights=weights, global_bases=output.global_bases, deviations=deviations,
+    result = DeepBasisOutput(maps=None, weights=upsample(output.weights), global_bases=output.global_bases,
+                             deviations=upsample(output.deviations) if output.deviations is not None else None,
                              error=upsample(output.error) if output.error is not None else None)
-    if deviations is not None:
-        result.bases = normalize_basis_normals(output.global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
-        signed = blend(weights, result.bases)
-    else:
-        signed = blend(weights, output.global_bases)
-    result.maps, result.extras["signed_maps"] = to_maps(signed), signed
+    result.maps = maps_from_bases(result, output.global_bases)
     return result
 
 
@@ -372,12 +372,16 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
     current = torch.zeros(2)
     history = []
     output = None
+
+    def objective(maps: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+        errors = light_objective(maps, small_photo, offsets, fov, convention, extent=model.config.plane_extent)
+        return errors + config.search_prior * offsets.square().sum(dim=-1)
+
     for index in range(config.search_passes):
         output = predict(model, photo[None], geometry.light_positions(current[None], fov), fov,
                          config.network_resolution)
         small_maps = _downsample_maps(output.maps.cpu(), config.search_resolution)
-        errors = light_objective(small_maps, small_photo, candidates, fov, convention, extent=model.config.plane_extent)
-        errors = errors + config.search_prior * candidates.square().sum(dim=-1)
+        errors = objective(small_maps, candidates)
         best = candidates[int(torch.argmin(errors))]
         history.append({"pass": index + 1, "offset": current.tolist(), "best_candidate": best.tolist(),
                         "objective": float(errors.min())})
@@ -387,8 +391,7 @@ def search_light(model: DeepBasisNet, photo: torch.Tensor, fov: float, config: C
     # A finer grid around the last candidate, with the material of the last pass.
     step = 2 * geometry.max_offset(fov, config.max_offset_deg) / max(1, config.search_grid - 1)
     fine = candidate_offsets(fov, config.max_offset_deg, 9, centre=tuple(current.tolist()), span=step)
-    errors = light_objective(small_maps, small_photo, fine, fov, convention, extent=model.config.plane_extent)
-    errors = errors + config.search_prior * fine.square().sum(dim=-1)
+    errors = objective(small_maps, fine)
     current = fine[int(torch.argmin(errors))]
     history.append({"pass": "fine", "offset": current.tolist(), "objective": float(errors.min())})
     return (float(current[0]), float(current[1])), history, output
@@ -431,6 +434,10 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     movable = torch.ones(constants.BASIS_CHANNELS)
     if not refine_normals:
         movable[:3] = 0.0
+
+    def masked(free: torch.Tensor) -> torch.Tensor:
+        return predicted + (free - predicted) * movable
+
     optimizer = torch.optim.Adam([global_bases], lr=lr)
     losses = []
     # The tensors here are small: waking torch's worker threads for every op costs more than it saves.
@@ -438,7 +445,7 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     torch.set_num_threads(1)
     try:
         for _ in tqdm(range(steps), desc="refining", unit="step", disable=not progress):
-            current = predicted + (global_bases - predicted) * movable
+            current = masked(global_bases)
             bases = normalize_basis_normals(current[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
             maps = to_maps(blend(weights, bases))
             rendered = render_flash(maps, lights, fov=fov, convention=convention, extent=extent)[:, 0].clamp(0.0, 1.0)
@@ -453,7 +460,7 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
             losses.append(loss.item())
     finally:
         torch.set_num_threads(threads)
-    return (predicted + (global_bases.detach() - predicted) * movable), losses
+    return masked(global_bases.detach()), losses
 
 
 def _deviations(output: DeepBasisOutput) -> torch.Tensor:

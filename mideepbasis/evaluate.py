@@ -367,8 +367,17 @@ def score(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, vi
     return result
 
 
+def summary_scores(means: dict[str, float]) -> dict:
+    """Means of ``score``'s metrics (flat keys ``maps_normal``, ``render_rmse``, ...) nested as the
+    summary reports them: ``maps_rmse`` {normal, diffuse, roughness, specular}, ``render_rmse``,
+    ``render_flip``, ``render_ssim``."""
+    return {"maps_rmse": {k: means[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
+            "render_rmse": means["render_rmse"], "render_flip": means["render_flip"], "render_ssim": means["render_ssim"]}
+
+
 def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine_steps: int,
-                 progress: bool, label: str, refine_normals: bool = False, network_resolution: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+                 progress: bool, label: str, refine_normals: bool = False, network_resolution: int | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine_steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
     import time
@@ -378,28 +387,29 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
     from .capture import CaptureConfig, maps_from_bases, predict, refine_global_bases, search_light
 
     convention = model.config.convention
+    capture_config = CaptureConfig(refine_normals=refine_normals, network_resolution=network_resolution)
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
         photos, lights = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention,
                                       model.config.plane_extent)
         if light == "search":
-            found, history, _ = search_light(model, photos[0], fov, CaptureConfig(network_resolution=network_resolution))
+            found, history, _ = search_light(model, photos[0], fov, capture_config)
             offset = torch.tensor(found)
         else:
             offset, history = offsets[index], []
         position = geometry.light_positions(offset.view(1, 2), fov)
-        output = predict(model, photos, position, fov, network_resolution)
+        output = predict(model, photos, position, fov, capture_config.network_resolution)
         plain.append(output.maps.cpu())
         seconds = time.perf_counter() - started
         refine_seconds = 0.0
         if refine_steps and output.weights is not None:
             started = time.perf_counter()
-            defaults = CaptureConfig()
             refined, _ = refine_global_bases(output, photos[0], position[0], fov, convention, steps=refine_steps,
-                                             resolution=defaults.refine_resolution, lr=defaults.refine_lr,
-                                             extent=model.config.plane_extent, refine_normals=refine_normals,
-                                             prior=defaults.refine_prior)
+                                             resolution=capture_config.refine_resolution, lr=capture_config.refine_lr,
+                                             extent=model.config.plane_extent,
+                                             refine_normals=capture_config.refine_normals,
+                                             prior=capture_config.refine_prior)
             refined_maps.append(maps_from_bases(output, refined).cpu())
             refine_seconds = time.perf_counter() - started
         details.append({"light_error_deg": light_error_deg(offset.tolist(), offsets[index].tolist(), fov),
@@ -411,6 +421,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     """Evaluate a model (and baselines) on a dataset; writes OUT and returns the summary."""
     import time
 
+    from .capture import CaptureConfig
     from .model.checkpoint import load_model
 
     started = time.perf_counter()
@@ -434,8 +445,6 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     rows: dict[str, dict] = {}
     per_material: dict[str, dict] = {}
     predictions = {}
-    from .capture import CaptureConfig
-
     steps = config.refine_steps or (CaptureConfig().refine_steps if config.baselines else 0)
     plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model",
                                            config.refine_normals, config.network_resolution)
@@ -474,9 +483,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
                "model": config.model or "shipped", "convention": convention, "light": config.light,
                "refine_steps": config.refine_steps, "refine_normals": config.refine_normals,
                "network_resolution": config.network_resolution, "row": main_row,
-               "maps_rmse": {k: main[f"maps_{k}"] for k in ("normal", "diffuse", "roughness", "specular")},
-               "render_rmse": main["render_rmse"], "render_flip": main["render_flip"], "render_ssim": main["render_ssim"],
-               "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),
+               **summary_scores(main), "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),
                "light_error_deg": main.get("light_error_deg"), "rows": rows, "notes": notes, "seed": config.seed}
     if config.lighting:
         summary["lighting"] = lighting_accuracy(model, truth, config, out, progress)

@@ -21,7 +21,8 @@ from mideepbasis.export import save_capture
 from mideepbasis.imageio import write_image
 from mideepbasis.material import Material
 from mideepbasis.model.checkpoint import load_model, save_checkpoint
-from mideepbasis.model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, to_signed
+from mideepbasis.model.network import (DeepBasisNet, DeepBasisOutput, NetworkConfig, normalize_basis_normals, preset,
+                                       to_maps, to_signed)
 from mideepbasis.render import render_flash
 
 
@@ -139,12 +140,16 @@ def test_the_network_runs_at_its_training_resolution_and_the_prediction_is_upsam
     limited = predict(model, photos, lights)
     assert limited.maps.shape == (1, 10, 64, 64) and limited.deviations.shape[-2:] == (64, 64)
     torch.testing.assert_close(limited.weights.sum(dim=1), torch.ones(1, 64, 64), atol=1e-5, rtol=0)
-    # The global bases are those of the 32 px photo; the maps are the blend of the upsampled
-    # weights and deviations (what the refinement and the exports use).
+    # The global bases are those of the 32 px photo; the maps are the blend of the bilinearly
+    # upsampled weights and deviations (what the refinement and the exports use).
     small = predict(model, F.interpolate(photos, size=(32, 32), mode="area"), lights)
     torch.testing.assert_close(limited.global_bases, small.global_bases)
-    torch.testing.assert_close(limited.maps, maps_from_bases(limited, limited.global_bases), atol=1e-5, rtol=0)
-    torch.testing.assert_close(limited.weights, F.interpolate(small.weights, size=(64, 64), mode="bilinear"))
+    weights = F.interpolate(small.weights, size=(64, 64), mode="bilinear")
+    deviations = F.interpolate(small.deviations.flatten(1, 2), size=(64, 64), mode="bilinear").view(1, -1, 10, 64, 64)
+    torch.testing.assert_close(limited.weights, weights)
+    torch.testing.assert_close(limited.deviations, deviations)
+    bases = normalize_basis_normals(small.global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
+    torch.testing.assert_close(limited.maps, to_maps((weights[:, :, None] * bases).sum(dim=1)), atol=1e-5, rtol=0)
     full = predict(model, photos, lights, network_resolution=0)
     assert not torch.allclose(full.global_bases, small.global_bases, atol=1e-4)
 
