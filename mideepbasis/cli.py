@@ -325,6 +325,19 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     parser.add_argument("--init", type=Path, default=None, metavar="MODEL.safetensors",
                         help="start from these weights (fine-tuning); optimiser and schedule start afresh")
+    parser.add_argument("--render-weight", type=float, default=defaults.render_weight,
+                        help="weight of the log-space re-rendering loss under random lights and views (0: off)")
+    parser.add_argument("--render-lights", type=_positive_int, default=defaults.render_lights,
+                        help="light-and-view pairs per material of the re-rendering loss")
+    parser.add_argument("--render-backend", choices=["mitsuba", "torch"], default=defaults.render_backend,
+                        help="renderer of photos and losses (torch: a machine without Mitsuba)")
+    parser.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the network")
+    parser.add_argument("--grad-clip", type=float, default=defaults.grad_clip, help="largest gradient norm (0: off)")
+    parser.add_argument("--warmup-steps", type=int, default=defaults.warmup_steps, help="linear learning-rate warm-up")
+    parser.add_argument("--validation-count", type=_positive_int, default=defaults.validation_count,
+                        help="held-out procedural materials per validation")
+    parser.add_argument("--max-minutes", type=float, default=defaults.max_minutes,
+                        help="stop after this much wall time [minutes] with a checkpoint (0: no limit)")
     parser.set_defaults(run=_run_train)
 
 
@@ -343,11 +356,18 @@ def _run_train(args) -> None:
                          saturation_weight=args.saturation_weight, seed=args.seed, workers=args.workers,
                          checkpoint_minutes=args.checkpoint_minutes, validate_every=args.validate_every,
                          log_every=args.log_every, device=args.device,
-                         init=str(args.init) if args.init else None)
+                         init=str(args.init) if args.init else None, render_weight=args.render_weight,
+                         render_lights=args.render_lights, render_backend=args.render_backend, bf16=args.bf16,
+                         grad_clip=args.grad_clip, warmup_steps=args.warmup_steps,
+                         validation_count=args.validation_count, max_minutes=args.max_minutes)
     if not args.resume and (args.out / "checkpoint.safetensors").exists():
         raise InputError(f"{args.out} already holds a run: pass --resume to continue it or choose another --out")
     path = train(config, resume=args.resume)
-    print(f"wrote {path}")
+    if path.exists():
+        print(f"wrote {path}")
+    else:
+        print(f"stopped before step {config.steps} (--max-minutes): continue with --resume; "
+              f"best weights so far in {args.out / 'best.safetensors'}")
 
 
 def build_parser() -> argparse.ArgumentParser:

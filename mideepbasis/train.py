@@ -114,6 +114,37 @@ class TrainConfig:
     """Start from the weights of this checkpoint (same network configuration), e.g. to fine-tune
     at a higher resolution; the optimiser and the schedule start afresh."""
 
+    render_weight: float = 0.0
+    """Weight of the re-rendering loss (0: off): L1 of log(1 + x) between renders of the predicted
+    and the true material under random lights and views, as Deschaintre et al. 2018. Under a
+    flash beside the camera the normals change the photo little; under grazing and mirror
+    configurations they change it a lot."""
+
+    render_lights: int = 6
+    """Light-and-view pairs per material of the re-rendering loss; half of them (rounded down)
+    are mirror pairs that put a highlight on the sample."""
+
+    render_backend: str = "mitsuba"
+    """Renderer of the training photos, the error map and the re-rendering loss: ``mitsuba`` (the
+    ``svbrdf`` plugin) or ``torch`` (the reference, equal to float precision; for a GPU server
+    without Mitsuba)."""
+
+    bf16: bool = False
+    """bfloat16 autocast of the network's forward pass; renders and losses stay float32."""
+
+    grad_clip: float = 1.0
+    """Largest global norm of the gradient; larger ones are scaled down (0: no clipping)."""
+
+    warmup_steps: int = 0
+    """Linear learning-rate warm-up over this many steps before the cosine decay."""
+
+    validation_count: int = 32
+    """Held-out procedural materials (fixed seeds, never drawn in training) of each validation."""
+
+    max_minutes: float = 0.0
+    """Stop after this much training wall time in this process [minutes], with a resumable
+    checkpoint (0: no limit); the schedule still runs to ``steps``."""
+
 
 # --- data --------------------------------------------------------------------------------------
 
@@ -250,6 +281,65 @@ def variation_consistency_loss(original: DeepBasisOutput, varied: DeepBasisOutpu
     return consistency + supervised_loss(varied, varied_maps, normal_weight)
 
 
+def sample_render_geometry(batch: int, count: int, generator: torch.Generator,
+                           distance: tuple[float, float] = (2.0, 5.0), min_cos: float = 0.15,
+                           jitter: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random light and view positions of the re-rendering loss.
+
+    Every position is ``d * dir + (jx, jy, 0)``: ``dir`` on the upper hemisphere with its cosine
+    to +z uniform in [min_cos, 1] (down to grazing, 81 deg by default), uniform azimuth, ``d``
+    uniform in ``distance``, a lateral jitter uniform in [-jitter, jitter]. The first
+    ``count - count // 2`` pairs draw light and view independently; the other ``count // 2`` are
+    mirror pairs: the view is the light mirrored about the normal of a random point q of the
+    sample (at its own distance), so a flat, smooth sample shows a highlight at q.
+
+    Returns:
+        lights, views: (B, K, 3) positions [patch half-widths].
+    """
+    def positions(n):
+        cos = min_cos + (1 - min_cos) * torch.rand(n, generator=generator)
+        sin = torch.sqrt(1 - cos**2)
+        phi = 2 * math.pi * torch.rand(n, generator=generator)
+        length = distance[0] + (distance[1] - distance[0]) * torch.rand(n, generator=generator)
+        lateral = (2 * torch.rand(n, 2, generator=generator) - 1) * jitter
+        direction = torch.stack([sin * torch.cos(phi), sin * torch.sin(phi), cos], dim=-1)
+        return length[:, None] * direction + torch.cat([lateral, torch.zeros(n, 1)], dim=-1), length
+
+    mirrored = count // 2
+    lights, _ = positions(batch * count)
+    lights = lights.view(batch, count, 3)
+    views, _ = positions(batch * count)
+    views = views.view(batch, count, 3)
+    if mirrored:
+        target = torch.cat([(2 * torch.rand(batch, mirrored, 2, generator=generator) - 1) * 0.7,
+                            torch.zeros(batch, mirrored, 1)], dim=-1)
+        to_light = lights[:, -mirrored:] - target
+        mirror = to_light * torch.tensor([-1.0, -1.0, 1.0])
+        length = distance[0] + (distance[1] - distance[0]) * torch.rand(batch, mirrored, 1, generator=generator)
+        views = torch.cat([views[:, :-mirrored], target + mirror / mirror.norm(dim=-1, keepdim=True) * length], dim=1)
+    return lights, views
+
+
+def rendering_loss(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, views: torch.Tensor,
+                   convention: str = constants.DEFAULT_CONVENTION) -> torch.Tensor:
+    """Mean |log(1 + render(predicted)) - log(1 + render(truth))| over K lights and views.
+
+    Args:
+        predicted, truth: (B, 10, H, W) maps (unit normals, the rest in [0, 1]).
+        lights, views: (B, K, 3) positions [patch half-widths] (``sample_render_geometry``).
+
+    The render is the renderer interface's (its current backend), in float32, with the physical
+    flash intensity of the default field of view.
+    """
+    from .render import render_flash
+
+    with torch.autocast(predicted.device.type, enabled=False):
+        rendered = render_flash(predicted.float(), lights, views=views, convention=convention)
+        with torch.no_grad():
+            reference = render_flash(truth.float(), lights, views=views, convention=convention)
+        return (torch.log1p(rendered.clamp(min=0.0)) - torch.log1p(reference.clamp(min=0.0))).abs().mean()
+
+
 def split_output(output: DeepBasisOutput, batch: int) -> tuple[DeepBasisOutput, DeepBasisOutput]:
     """The first ``batch`` items and the rest, as two outputs."""
     def part(selection):
@@ -262,6 +352,14 @@ def split_output(output: DeepBasisOutput, batch: int) -> tuple[DeepBasisOutput, 
 
 
 # --- the loop ------------------------------------------------------------------------------------
+
+
+def _single_threaded_worker(worker_id: int) -> None:
+    """Material workers use one thread each (OpenCV would start a pool per worker otherwise)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
 
 
 def _distributed() -> tuple[int, int]:
@@ -283,9 +381,11 @@ def _device(name: str, rank: int) -> torch.device:
     return torch.device(name)
 
 
-def learning_rate_factor(step: int, steps: int, final_fraction: float) -> float:
-    """Cosine decay from 1 at step 0 to ``final_fraction`` at the last step."""
-    progress = min(1.0, step / max(1, steps - 1))
+def learning_rate_factor(step: int, steps: int, final_fraction: float, warmup: int = 0) -> float:
+    """Linear warm-up over ``warmup`` steps, then cosine decay from 1 to ``final_fraction`` at the last step."""
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, steps - warmup - 1))
     return final_fraction + (1 - final_fraction) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
@@ -324,6 +424,9 @@ class Trainer:
             raise InputError(f"training size {config.size} is not a multiple of the {config.preset} network's "
                              f"stride {network_config.stride}")
         self.synthesis = SynthesisConfig(**{**config.synthesis, "convention": network_config.convention})
+        from .render import set_render_backend
+
+        set_render_backend(config.render_backend)
         self.model = DeepBasisNet(network_config).to(self.device)
         local = [p for n, p in self.model.named_parameters() if n.startswith("local_unit.")]
         rest = [p for n, p in self.model.named_parameters() if not n.startswith("local_unit.")]
@@ -335,6 +438,8 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(config.seed * 1_000_003 + self.rank)
         self.step = 0
         self.elapsed = 0.0
+        self.best_score = math.inf
+        self._validation_batch = None
         if config.init and not resume:
             self._initialise_from(config.init)
         if resume:
@@ -363,6 +468,7 @@ class Trainer:
         self.model.load_state_dict(weights)
         _restore_optimizer(self.optimizer, self.parameter_names, tensors, state["optimizer_steps"])
         self.step, self.elapsed = state["step"], state["elapsed_seconds"]
+        self.best_score = state.get("best_validation_score", math.inf)
         self.generator.set_state(tensors[f"state/generator_rank{self.rank}"])
         self._set_learning_rate()
 
@@ -381,7 +487,8 @@ class Trainer:
         training = self.training_record()
         save_checkpoint(self.out / "checkpoint.safetensors", model, metadata={
             "training": training, "training_state": {"step": self.step, "elapsed_seconds": self.elapsed,
-                                                     "optimizer_steps": optimizer_steps}},
+                                                     "optimizer_steps": optimizer_steps,
+                                                     "best_validation_score": self.best_score}},
             extra_tensors={**optimizer_tensors, **extra})
         if final:
             save_checkpoint(self.out / "model.safetensors", model, metadata={"training": training})
@@ -394,17 +501,20 @@ class Trainer:
     # --- one step --------------------------------------------------------------------------------
 
     def _set_learning_rate(self) -> None:
-        factor = learning_rate_factor(self.step, self.config.steps, self.config.final_lr_fraction)
+        factor = learning_rate_factor(self.step, self.config.steps, self.config.final_lr_fraction,
+                                      self.config.warmup_steps)
         for group in self.optimizer.param_groups:
             group["lr"] = group["initial_lr"] * factor
 
     def train_step(self, maps: torch.Tensor) -> dict:
         config = self.config
+        maps = maps.to(self.device, non_blocking=True)
         batch = synthesize(maps, self.generator, self.synthesis)
         use_vc = config.vc_weight > 0
         inputs = torch.cat([batch.inputs, batch.varied_inputs]) if use_vc else batch.inputs
         lights = torch.cat([batch.lights, batch.lights]) if use_vc else batch.lights
-        output = self.model(inputs.to(self.device), lights.to(self.device), fov=self.synthesis.fov)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=config.bf16):
+            output = self.model(inputs.to(self.device), lights.to(self.device), fov=self.synthesis.fov)
         target = batch.maps.to(self.device)
         if use_vc:
             original, varied = split_output(output, maps.shape[0])
@@ -414,14 +524,28 @@ class Trainer:
                                             config.normal_weight)
         else:
             sup, vc = supervised_loss(output, target, config.normal_weight), torch.zeros((), device=self.device)
-        saturation = saturation_penalty(output.extras["decoder_raw"])
+        saturation = saturation_penalty(output.extras["decoder_raw"].float())
         loss = sup + config.vc_weight * vc + config.saturation_weight * saturation
+        losses = {}
+        if config.render_weight > 0:
+            predicted = (original if use_vc else output).maps
+            render_lights, render_views = sample_render_geometry(maps.shape[0], config.render_lights, self.generator)
+            rendering = rendering_loss(predicted, target, render_lights.to(self.device), render_views.to(self.device),
+                                       self.synthesis.convention)
+            loss = loss + config.render_weight * rendering
+            losses["l_render"] = rendering.item()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if config.grad_clip > 0:
+            norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), config.grad_clip)
+        else:
+            norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in self.model.parameters()
+                                                         if p.grad is not None]))
         self.optimizer.step()
         self.step += 1
         self._set_learning_rate()
-        return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item()}
+        return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
+                **losses, "grad_norm": norm.item()}
 
     # --- the loop ----------------------------------------------------------------------------------
 
@@ -429,8 +553,9 @@ class Trainer:
         dataset = TrainingMaterials(tuple(self.config.data), self.config.size, self.config.seed)
         sampler = StepBatchSampler(self.config.batch, self.step, self.rank, self.world_size)
         workers = self.config.workers
-        return DataLoader(dataset, batch_sampler=sampler, num_workers=workers,
-                          prefetch_factor=4 if workers else None, persistent_workers=workers > 0)
+        return DataLoader(dataset, batch_sampler=sampler, num_workers=workers, worker_init_fn=_single_threaded_worker,
+                          prefetch_factor=4 if workers else None, persistent_workers=workers > 0,
+                          pin_memory=self.device.type == "cuda")
 
     def run(self, stop_at: int | None = None) -> None:
         """Train to ``config.steps``; ``stop_at`` ends early after a checkpoint, as a kill would."""
@@ -440,18 +565,31 @@ class Trainer:
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
             (self.out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2) + "\n")
-        last_checkpoint = time.monotonic()
-        bar = tqdm(total=config.steps, initial=self.step, desc="training", unit="step", disable=not self.progress)
+        last_checkpoint = started_run = time.monotonic()
+        # disable=None: no bar where stderr is not a terminal (a log file).
+        bar = tqdm(total=config.steps, initial=self.step, desc="training", unit="step",
+                   disable=None if self.progress else True)
         iterator = iter(self.loader()) if self.step < config.steps else None
+        if config.validate_every and self.step == 0 and self.rank == 0:
+            # The starting point of the learning curve; after the workers start, since forking a
+            # process whose OpenMP threads have run can deadlock the child.
+            self.validate()
         window_start, window_steps = time.monotonic(), 0
+        first_step_done, session_start_step = None, self.step
         while self.step < config.steps:
-            if stop_at is not None and self.step >= stop_at:
+            out_of_time = config.max_minutes > 0 and time.monotonic() - started_run > 60 * config.max_minutes
+            if out_of_time or (stop_at is not None and self.step >= stop_at):
+                if out_of_time:
+                    self._log_session_rate(session_start_step, first_step_done)
+                    self._final_validation()
                 self.save()
                 bar.close()
                 return
             started = time.monotonic()
             losses = self.train_step(next(iterator))
             self.elapsed += time.monotonic() - started
+            if first_step_done is None:
+                first_step_done, session_start_step = time.monotonic(), self.step
             window_steps += 1
             bar.update(1)
             bar.set_postfix(loss=f"{losses['loss']:.4f}")
@@ -466,11 +604,24 @@ class Trainer:
                 self.save()
                 last_checkpoint = time.monotonic()
         bar.close()
+        self._log_session_rate(session_start_step, first_step_done)
+        self._final_validation()
         self.save(final=True)
         if self.rank == 0:
             self.plot_losses()
         if self.world_size > 1:
             dist.barrier()
+
+    def _log_session_rate(self, start_step: int, start_time: float | None) -> None:
+        """Log this process's steps per second, from its first step (start-up excluded) to now."""
+        if self.rank == 0 and start_time is not None and self.step > start_step:
+            rate = (self.step - start_step) / max(1e-9, time.monotonic() - start_time)
+            self.log({"step": self.step, "session_steps_per_second": round(rate, 4)})
+
+    def _final_validation(self) -> None:
+        """Validate the last weights too, unless this step was just validated."""
+        if self.config.validate_every and self.rank == 0 and self.step % self.config.validate_every:
+            self.validate()
 
     def log(self, record: dict) -> None:
         with open(self.out / "train.jsonl", "a") as log:
@@ -481,26 +632,63 @@ class Trainer:
 
         plot_training_log(self.out / "train.jsonl", self.out / "loss.png")
 
-    def validate(self, count: int = 4) -> None:
-        """Predict fixed held-out procedural materials; log map RMSE and write a sheet."""
-        from .data.procedural import GeneratorConfig, generate
+    def validation_batch(self):
+        """The held-out validation materials and their photos (fixed seeds; made once)."""
+        if self._validation_batch is None:
+            from .data.procedural import GeneratorConfig, generate
+
+            maps = torch.stack([generate(VALIDATION_SEED + i, config=GeneratorConfig(size=self.config.size)).to_tensor()
+                                for i in range(self.config.validation_count)])
+            self._validation_batch = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis)
+        return self._validation_batch
+
+    def validate(self, chunk: int = 16) -> dict:
+        """Predict the held-out procedural materials; log map RMSE (and the flat-normal RMSE beside
+        the normal's), keep ``best.safetensors`` by their mean, and write a sheet of four."""
         from .reporting import validation_sheet
 
+        batch = self.validation_batch()
         model = getattr(self.model, "module", self.model)
         model.eval()
-        maps = torch.stack([generate(10**9 + i, config=GeneratorConfig(size=self.config.size)).to_tensor()
-                            for i in range(count)])
-        batch = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis)
-        with torch.no_grad():
-            output = model(batch.inputs.to(self.device), batch.lights.to(self.device), fov=self.synthesis.fov)
-        predicted = output.maps.cpu()
+        predicted = []
+        with torch.no_grad(), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
+            for start in range(0, batch.maps.shape[0], chunk):
+                output = model(batch.inputs[start:start + chunk].to(self.device),
+                               batch.lights[start:start + chunk].to(self.device), fov=self.synthesis.fov)
+                predicted.append(output.maps.float().cpu())
         model.train()
-        rmse = ((predicted - maps) ** 2).mean(dim=(0, 2, 3)).sqrt()
-        record = {"step": self.step, "validation_rmse": {"normal": rmse[0:3].mean().item(), "diffuse": rmse[3:6].mean().item(),
-                                                         "roughness": rmse[6].item(), "specular": rmse[7:10].mean().item()}}
+        predicted, maps = torch.cat(predicted), batch.maps
+        rmse = map_rmse(predicted, maps)
+        flat = maps.clone()
+        flat[:, 0:3] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+        score = sum(rmse.values()) / len(rmse)
+        record = {"step": self.step, "validation_rmse": rmse, "validation_score": score,
+                  "validation_flat_normal_rmse": map_rmse(flat, maps)["normal"],
+                  "validation_tilt_deg": {"predicted": mean_tilt_deg(predicted), "truth": mean_tilt_deg(maps)}}
         self.log(record)
-        validation_sheet(batch.photos, predicted, maps, self.out / "validation" / f"step_{self.step:07d}.png")
+        if score < self.best_score:
+            self.best_score = score
+            save_checkpoint(self.out / "best.safetensors", model, metadata={"training": {
+                **self.training_record(), "validation": record}})
+        validation_sheet(batch.photos[:4], predicted[:4], maps[:4], self.out / "validation" / f"step_{self.step:07d}.png")
         self.plot_losses()
+        return record
+
+
+#: Seed of the first held-out validation material (training draws material numbers from 0 up).
+VALIDATION_SEED = 10**9
+
+
+def map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
+    """RMSE of each map over a batch (B, 10, H, W), in the in-memory encoding."""
+    rmse = ((predicted - truth) ** 2).mean(dim=(0, 2, 3)).sqrt()
+    return {"normal": rmse[0:3].mean().item(), "diffuse": rmse[3:6].mean().item(), "roughness": rmse[6].item(),
+            "specular": rmse[7:10].mean().item()}
+
+
+def mean_tilt_deg(maps: torch.Tensor) -> float:
+    """Mean angle between the normals of (B, 10, H, W) maps and +z [deg]: how much relief there is."""
+    return torch.rad2deg(torch.acos(maps[:, 2].clamp(-1.0, 1.0))).mean().item()
 
 
 def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> Path:

@@ -245,7 +245,8 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
     variation = sample_variation(batch, generator, config.max_rotation, config.max_shift)
     varied = variation.apply(maps)
     offsets = sample_offsets(batch, generator, config.fov, config.max_offset_deg, config.offset_sigma_divisor)
-    lights = geometry.light_positions(offsets, config.fov)
+    # Random numbers come from the (CPU) generator; the renders run where the maps are.
+    lights = geometry.light_positions(offsets, config.fov).to(maps.device)
     with torch.no_grad():
         radiance = render_flash(torch.cat([maps, varied]), torch.cat([lights, lights]).view(2 * batch, 1, 3),
                                 fov=config.fov, convention=config.convention)[:, 0]

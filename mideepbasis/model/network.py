@@ -330,9 +330,12 @@ class DeepBasisNet(nn.Module):
         # The renderer takes the blended normal as it is (a normal below the surface renders black).
         global_maps = to_maps(blend(weights, global_bases), upper_hemisphere=False)
         photo = inputs[:, :3] * 0.5 + 0.5
-        rendered = render_flash(global_maps, lights.view(batch, 1, 3), fov=fov, convention=config.convention,
-                                extent=config.plane_extent)[:, 0]
-        error = rendered.clamp(0.0, 1.0) - photo
+        # The render runs in float32 even under mixed-precision autocast: the GGX peak of smooth
+        # bases does not survive bfloat16.
+        with torch.autocast(inputs.device.type, enabled=False):
+            rendered = render_flash(global_maps.float(), lights.view(batch, 1, 3).float(), fov=fov,
+                                    convention=config.convention, extent=config.plane_extent)[:, 0]
+        error = rendered.clamp(0.0, 1.0) - photo.float()
         # The global bases enter as constant planes (N x 10 channels) without being built.
         local_inputs = torch.cat([inputs, error, weights], dim=1)
         deviations = torch.tanh(self.local_unit(local_inputs, planes=global_bases.reshape(batch, -1)))

@@ -9,6 +9,11 @@ Importing this package
 2. sets the Mitsuba variant, unless one is set already: ``$MIDEEPBASIS_VARIANT`` if given,
    else ``cuda_ad_rgb`` where torch sees a CUDA device, else ``llvm_ad_rgb``;
 3. registers the ``svbrdf`` BSDF plugin.
+
+Where Mitsuba is not installed (a training machine that has only torch, such as a lent GPU
+server), the package still imports: the ``torch`` backend of ``render_flash`` works, and the
+``mitsuba`` backend raises ``MitsubaMissingError`` naming the fix. ``set_render_backend``
+chooses the backend that calls without an explicit ``backend`` use (``mitsuba`` by default).
 """
 
 from __future__ import annotations
@@ -35,6 +40,38 @@ _FIX = "install LLVM 19 (Debian/Ubuntu: `apt-get install libllvm19`) or set DRJI
 
 class LLVMNotFoundError(MideepbasisError):
     """No libLLVM that drjit's LLVM backend can use was found."""
+
+
+class MitsubaMissingError(MideepbasisError):
+    """The ``mitsuba`` render backend was asked for where Mitsuba is not installed."""
+
+
+#: Backends of ``render_flash``: the ``svbrdf`` plugin through the bridge, or the torch reference.
+RENDER_BACKENDS = ("mitsuba", "torch")
+
+_default_backend = "mitsuba"
+
+
+def set_render_backend(name: str) -> None:
+    """Choose the backend of every ``render_flash`` call that names none (training on a GPU
+    machine without Mitsuba uses ``torch``)."""
+    global _default_backend
+    if name not in RENDER_BACKENDS:
+        raise ValueError(f"unknown render backend {name!r}; expected one of {RENDER_BACKENDS}")
+    if name == "mitsuba":
+        _require_mitsuba()
+    _default_backend = name
+
+
+def _require_mitsuba() -> None:
+    if _MITSUBA_MISSING is not None:
+        raise MitsubaMissingError(f"the mitsuba render backend needs Mitsuba 3 ({_MITSUBA_MISSING}); "
+                                  "install the package's dependencies or choose the torch backend")
+
+
+def render_backend() -> str:
+    """The backend ``render_flash`` uses when a call names none."""
+    return _default_backend
 
 
 def llvm_major_version(path: str | os.PathLike) -> int | None:
@@ -112,13 +149,18 @@ def _initialise() -> None:
         mi.set_variant(variant)
 
 
-_initialise()
-
-from . import bsdf  # noqa: E402  (registers the plugin once the variant is set)
+try:
+    import mitsuba as _mitsuba  # noqa: F401
+except ImportError as _error:  # only the torch backend is available
+    _MITSUBA_MISSING: ImportError | None = _error
+else:
+    _MITSUBA_MISSING = None
+    _initialise()
+    from . import bsdf  # noqa: E402, F401  (registers the plugin once the variant is set)
 
 
 def render_flash(maps, lights, *, fov: float | None = None, convention: str | None = None,
-                 intensity: float | None = None, backend: str = "mitsuba", views=None, extent: float = 1.0):
+                 intensity: float | None = None, backend: str | None = None, views=None, extent: float = 1.0):
     """The flash renderer every part of the pipeline calls: per pixel, batched, differentiable.
 
     Args:
@@ -128,7 +170,8 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
         convention: ``physical`` (default) or ``deepbasis``.
         intensity: radiant intensity [W/sr]; default ``geometry.flash_intensity(fov, convention)``.
         backend: ``mitsuba`` (the ``svbrdf`` plugin through the bridge) or ``torch`` (the
-            independent reference, for cross-checks).
+            independent reference, for cross-checks and machines without Mitsuba); None: the
+            one ``set_render_backend`` chose (``mitsuba`` unless changed).
         views: (B, K, 3) viewpoints apart from the lights (re-rendering metrics), or None: the
             camera sits at the light, as in a flash capture.
         extent: half-width of the framed sample [patch half-widths] (1 here; the authors'
@@ -138,12 +181,17 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
         linear radiance, (B, K, 3, H, W).
     """
     from .. import constants, geometry
-    from . import bridge, reference
+    from . import reference
 
     convention = convention or constants.DEFAULT_CONVENTION
+    backend = backend or _default_backend
     if intensity is None:
         intensity = geometry.flash_intensity(fov or constants.DEFAULT_FOV_DEG, convention)
-    renderers = {"mitsuba": bridge.render_flash, "torch": reference.render_flash}
-    if backend not in renderers:
-        raise ValueError(f"unknown render backend {backend!r}; expected one of {sorted(renderers)}")
-    return renderers[backend](maps, lights, intensity, convention, views=views, extent=extent)
+    if backend not in RENDER_BACKENDS:
+        raise ValueError(f"unknown render backend {backend!r}; expected one of {list(RENDER_BACKENDS)}")
+    if backend == "torch":
+        return reference.render_flash(maps, lights, intensity, convention, views=views, extent=extent)
+    _require_mitsuba()
+    from . import bridge
+
+    return bridge.render_flash(maps, lights, intensity, convention, views=views, extent=extent)
