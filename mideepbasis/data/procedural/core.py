@@ -24,6 +24,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+#: OpenCV 5 draws text into 8-bit images only (4.x, the pinned version, takes float32 too); a
+#: machine with another OpenCV, such as a GPU server's image, still generates the same families.
+_OPENCV_TEXT_NEEDS_BYTES = int(cv2.__version__.split(".")[0]) >= 5
+
 #: Relief that one millimetre of height corresponds to on a typical 15 cm sample [patch half-widths].
 MILLIMETRE = 2.0 / 150.0
 
@@ -305,8 +309,13 @@ class Canvas:
         scale = height * size / 22.0  # Hershey simplex capitals are about 22 px tall at scale 1
         weight = max(1, int(round(thickness * size)))
         (w, h), baseline = cv2.getTextSize(text, font, scale, weight)
-        patch = np.zeros((h + baseline + 2 * weight, w + 2 * weight), np.float32)
-        cv2.putText(patch, text, (weight, h + weight), font, scale, 1.0, weight, cv2.LINE_AA)
+        if _OPENCV_TEXT_NEEDS_BYTES:
+            patch = np.zeros((h + baseline + 2 * weight, w + 2 * weight), np.uint8)
+            cv2.putText(patch, text, (weight, h + weight), font, scale, 255, weight, cv2.LINE_AA)
+            patch = patch.astype(np.float32) / 255.0
+        else:
+            patch = np.zeros((h + baseline + 2 * weight, w + 2 * weight), np.float32)
+            cv2.putText(patch, text, (weight, h + weight), font, scale, 1.0, weight, cv2.LINE_AA)
         rotation = cv2.getRotationMatrix2D((weight, h + weight), math.degrees(-angle), 1.0)
         for sx, sy in self._copies():
             matrix = rotation.copy()
