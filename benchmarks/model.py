@@ -40,12 +40,22 @@ def forward_ms(name: str, size: int, repeats: int) -> float:
     return round(statistics.median(runs), 1)
 
 
-def training_steps_per_second(size: int, batch: int, steps: int) -> float:
+#: Training settings whose speed is measured: name -> TrainConfig overrides (batch and size apart).
+TRAINING_SETTINGS = {
+    "fp32": {},
+    "bf16": {"bf16": True},
+    "bf16_render_loss": {"bf16": True, "render_weight": 1.0},
+}
+
+
+def training_steps_per_second(size: int, batch: int, steps: int, workers: int = 2, **overrides) -> float:
+    """Steps per second of the real loop (materials from the workers, synthesis, both VC passes,
+    backward, Adam) after one warm-up step."""
     from mideepbasis.train import TrainConfig, Trainer
 
     with tempfile.TemporaryDirectory() as folder:
-        config = TrainConfig(out=folder, preset="compact", steps=steps + 1, batch=batch, size=size, workers=2,
-                             validate_every=0, checkpoint_minutes=1e9)
+        config = TrainConfig(out=folder, preset="compact", steps=steps + 1, batch=batch, size=size, workers=workers,
+                             validate_every=0, checkpoint_minutes=1e9, **overrides)
         trainer = Trainer(config, progress=False)
         iterator = iter(trainer.loader())
         trainer.train_step(next(iterator))  # warm-up: kernels compiled, workers started
@@ -72,6 +82,12 @@ def main() -> None:
         print(name, presets[name])
     training = {f"compact_{size}px_batch{args.train_batch}": training_steps_per_second(size, args.train_batch, args.train_steps)
                 for size in (128, 256)}
+    settings = {}
+    for name, overrides in TRAINING_SETTINGS.items():
+        rate = training_steps_per_second(128, args.train_batch, args.train_steps, **overrides)
+        settings[name] = {"steps_per_second": rate, "materials_per_second": round(rate * args.train_batch, 3)}
+        print(f"128 px, batch {args.train_batch}, {name}: {rate} steps/s")
+    training["settings_128px"] = settings
     print("training steps/s:", training)
     write_report(args.output, "model", {"targets": TARGETS, "presets": presets, "training_steps_per_second": training})
 

@@ -663,6 +663,7 @@ class Trainer:
         flat[:, 0:3] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
         score = sum(rmse.values()) / len(rmse)
         record = {"step": self.step, "validation_rmse": rmse, "validation_score": score,
+                  "validation_rerender_rmse": self._validation_rerender_rmse(predicted, maps),
                   "validation_flat_normal_rmse": map_rmse(flat, maps)["normal"],
                   "validation_tilt_deg": {"predicted": mean_tilt_deg(predicted), "truth": mean_tilt_deg(maps)}}
         self.log(record)
@@ -673,6 +674,20 @@ class Trainer:
         validation_sheet(batch.photos[:4], predicted[:4], maps[:4], self.out / "validation" / f"step_{self.step:07d}.png")
         self.plot_losses()
         return record
+
+
+    def _validation_rerender_rmse(self, predicted: torch.Tensor, maps: torch.Tensor, count: int = 8) -> float:
+        """Mean RMSE of clipped sRGB re-renderings under ``count`` seeded lights and views (the
+        evaluation's metric, on the validation materials)."""
+        from .evaluate import random_lights_and_views, rerender_rmse
+        from .render import render_backend
+
+        lights, views = random_lights_and_views(count, seed=0)
+        device = self.device
+        errors = [rerender_rmse(predicted[start:start + 16].to(device), maps[start:start + 16].to(device),
+                                lights.to(device), views.to(device), self.synthesis.convention, render_backend())
+                  for start in range(0, maps.shape[0], 16)]
+        return torch.cat(errors).mean().item()
 
 
 #: Seed of the first held-out validation material (training draws material numbers from 0 up).

@@ -41,7 +41,24 @@ def launch(name: str, flags: list[str], out: Path, workers: int, log) -> subproc
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=environment)
 
 
-def wait_all(processes: dict, log) -> None:
+def copy_results(runs: Path, out: Path, names: list[str], files=("best.safetensors", "train.jsonl")) -> None:
+    """Copy each variant's best weights and log into ``out`` (temporary file, then rename), so that
+    a run killed at the call's time limit still brings back what it has."""
+    for name in names:
+        (out / name).mkdir(parents=True, exist_ok=True)
+        for file in files:
+            source = runs / name / file
+            if source.exists():
+                temporary = out / name / f".{file}.tmp"
+                shutil.copy(source, temporary)
+                os.replace(temporary, out / name / file)
+
+
+def wait_all(processes: dict, log, every: float = 0.0, copy=None) -> None:
+    """Wait for every process, calling ``copy`` every ``every`` seconds meanwhile (0: never)."""
+    while every and any(process.poll() is None for process in processes.values()):
+        time.sleep(every)
+        copy()
     for name, process in processes.items():
         code = process.wait()
         print(f"{name}: exit {code}", file=log, flush=True)
@@ -66,6 +83,8 @@ def main() -> None:
     parser.add_argument("--init", default="mideepbasis/models/deepbasis_compact.safetensors")
     parser.add_argument("--validations", type=int, default=12, help="validations over the real run")
     parser.add_argument("--workers", type=int, default=0, help="material workers per variant (0: share the cores)")
+    parser.add_argument("--keep-final", action="store_true",
+                        help="bring back the last weights too (model.safetensors; mind the 8-file limit)")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu to try the script on a small machine")
     parser.add_argument("--size", type=int, default=128, help="training resolution [pixels]")
     parser.add_argument("--out", type=Path, required=True)
@@ -90,16 +109,14 @@ def main() -> None:
     print(f"calibration: {steps_per_second:.2f} steps/s (slowest variant) after {time.monotonic() - started:.0f} s; "
           f"{steps} steps", file=log, flush=True)
 
+    files = ("best.safetensors", "train.jsonl") + (("model.safetensors",) if args.keep_final else ())
+    copy = lambda: copy_results(args.runs, args.out, args.variants, files)  # noqa: E731
     wait_all({name: launch(name, [*common, "--steps", str(steps), "--validate-every", str(max(50, steps // args.validations)),
                                   "--max-minutes", str(args.minutes)], args.runs, workers, log)
-              for name in args.variants}, log)
+              for name in args.variants}, log, every=20.0, copy=copy)
+    copy()
     for name in args.variants:
         run = args.runs / name
-        target = args.out / name
-        target.mkdir(exist_ok=True)
-        for file in ("best.safetensors", "train.jsonl"):
-            if (run / file).exists():
-                shutil.copy(run / file, target / file)
         final = [json.loads(line) for line in (run / "train.jsonl").read_text().splitlines()]
         validations = [r for r in final if "validation_score" in r]
         best = min(validations, key=lambda r: r["validation_score"]) if validations else None

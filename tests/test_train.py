@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -14,8 +15,8 @@ from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import Variation
 from mideepbasis.model.checkpoint import load_model, read_checkpoint
 from mideepbasis.model.network import DeepBasisOutput
-from mideepbasis.train import (TrainConfig, Trainer, augment, learning_rate_factor, saturation_penalty,
-                               variation_consistency_loss)
+from mideepbasis.train import (TrainConfig, Trainer, augment, learning_rate_factor, rendering_loss,
+                               sample_render_geometry, saturation_penalty, variation_consistency_loss)
 
 
 def tiny_config(tmp_path, **overrides):
@@ -124,3 +125,100 @@ def test_two_processes_under_torchrun(tmp_path):
     document, _ = read_checkpoint(out / "model.safetensors")
     assert document["training"]["world_size"] == 2 and document["training"]["steps_done"] == 2
     assert (out / "train.jsonl").read_text().count('"loss"') == 2
+
+
+def test_learning_rate_warms_up_linearly_then_decays():
+    assert learning_rate_factor(0, 110, 0.01, warmup=10) == pytest.approx(0.1)
+    assert learning_rate_factor(4, 110, 0.01, warmup=10) == pytest.approx(0.5)
+    assert learning_rate_factor(10, 110, 0.01, warmup=10) == 1.0
+    assert learning_rate_factor(109, 110, 0.01, warmup=10) == pytest.approx(0.01)
+
+
+def test_mirror_pairs_put_a_highlight_on_the_sample():
+    lights, views = sample_render_geometry(64, 6, torch.Generator().manual_seed(3))
+    assert lights.shape == views.shape == (64, 6, 3)
+    assert (lights[..., 2] >= 2.0 * 0.15 - 1e-6).all() and (views[..., 2] >= 2.0 * 0.15 - 1e-6).all()
+    assert (torch.linalg.vector_norm(lights, dim=-1) <= 5.0 + 0.5 * 2**0.5 + 1e-5).all()
+    # The last three pairs: the straight line from the light to the view mirrored below the plane
+    # crosses the plane at q, where light and view directions are mirror images about +z.
+    light, view = lights[:, 3:].reshape(-1, 3), views[:, 3:].reshape(-1, 3)
+    below = view * torch.tensor([1.0, 1.0, -1.0])
+    t = light[:, 2] / (light[:, 2] - below[:, 2])
+    q = light + t[:, None] * (below - light)
+    assert q[:, 2].abs().max() < 1e-5 and q[:, :2].abs().max() <= 0.7 + 1e-5
+    to_light = torch.nn.functional.normalize(light - q, dim=-1)
+    to_view = torch.nn.functional.normalize(view - q, dim=-1)
+    assert torch.allclose(to_view, to_light * torch.tensor([-1.0, -1.0, 1.0]), atol=1e-5)
+    # The first three are drawn independently: not mirror pairs.
+    light, view = lights[:, :3].reshape(-1, 3), views[:, :3].reshape(-1, 3)
+    assert ((light[:, :2] + view[:, :2]).abs().sum(-1) > 0.05).float().mean() > 0.9
+
+
+@pytest.fixture
+def restore_render_backend():
+    from mideepbasis.render import render_backend, set_render_backend
+
+    before = render_backend()
+    yield
+    set_render_backend(before)
+
+
+def test_rendering_loss_against_a_hand_computed_reference(restore_render_backend):
+    from mideepbasis import geometry
+    from mideepbasis.render import reference, set_render_backend
+
+    truth = torch.stack([generate(seed, config=GeneratorConfig(size=16)).to_tensor() for seed in range(2)])
+    predicted = truth.clone()
+    predicted[:, 3:6] *= 0.5
+    lights, views = sample_render_geometry(2, 4, torch.Generator().manual_seed(0))
+    intensity = geometry.flash_intensity()
+    expected = (torch.log1p(reference.render_flash(predicted, lights, intensity, views=views))
+                - torch.log1p(reference.render_flash(truth, lights, intensity, views=views))).abs().mean()
+    for backend, tolerance in (("torch", 1e-6), ("mitsuba", 1e-4)):
+        set_render_backend(backend)
+        assert rendering_loss(truth, truth, lights, views).item() == 0.0
+        assert rendering_loss(predicted, truth, lights, views).item() == pytest.approx(expected.item(), rel=tolerance)
+    # Its gradient reaches the normals through the plugin.
+    normals = truth.clone().requires_grad_(True)
+    tilted = torch.cat([normals[:, :3] + torch.tensor([0.2, 0.0, 0.0]).view(1, 3, 1, 1), normals[:, 3:]], 1)
+    rendering_loss(tilted, truth, lights, views).backward()
+    assert normals.grad[:, :3].abs().sum() > 0
+
+
+def test_render_backend_torch_works_without_mitsuba(tmp_path):
+    fake = tmp_path / "mitsuba"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise ImportError('no mitsuba here')\n")
+    script = ("import torch\n"
+              "from mideepbasis.render import render_flash, MitsubaMissingError\n"
+              "maps = torch.zeros(1, 10, 4, 4); maps[:, 2] = 1; maps[:, 3:6] = 1\n"
+              "image = render_flash(maps, torch.tensor([[[0.0, 0.0, 2.414213562]]]), backend='torch')\n"
+              "assert abs(image[0, 0, :, 1:3, 1:3].mean().item() - 1.0) < 0.05, image\n"
+              "try:\n"
+              "    render_flash(maps, torch.tensor([[[0.0, 0.0, 2.0]]]))\n"
+              "except MitsubaMissingError as error:\n"
+              "    print('refused:', error)\n")
+    environment = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=environment)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "refused: the mitsuba render backend needs Mitsuba 3 (no mitsuba here)" in result.stdout
+
+
+def test_validation_keeps_the_best_weights_and_a_time_limit_stops_with_a_checkpoint(tmp_path, restore_render_backend):
+    config = tiny_config(tmp_path, steps=1000, validate_every=3, validation_count=3, render_weight=1.0,
+                         render_lights=2, bf16=True, warmup_steps=2, max_minutes=0.15)
+    trainer = Trainer(config, progress=False)
+    trainer.run()
+    assert 0 < trainer.step < 1000
+    records = [json.loads(line) for line in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
+    validations = [r for r in records if "validation_score" in r]
+    assert validations[0]["step"] == 0 and len(validations) >= 2
+    assert all(r["validation_rerender_rmse"] > 0 for r in validations)
+    assert all(math.isfinite(r["l_render"]) and r["grad_norm"] > 0 for r in records if "loss" in r)
+    best = min(validations, key=lambda r: r["validation_score"])
+    document, _ = read_checkpoint(tmp_path / "run" / "best.safetensors")
+    assert document["training"]["validation"]["step"] == best["step"]
+    state, _ = read_checkpoint(tmp_path / "run" / "checkpoint.safetensors")
+    assert state["training_state"]["step"] == trainer.step
+    assert state["training_state"]["best_validation_score"] == pytest.approx(best["validation_score"])
+    assert not (tmp_path / "run" / "model.safetensors").exists()  # stopped, not finished

@@ -1,0 +1,92 @@
+"""The learning curve of the shipped model's lineage, across sessions, as one PNG.
+
+    .venv/bin/python benchmarks/learning_curve.py [--add LABEL runs/NAME/train.jsonl BATCH] [-o benchmarks/results/learning_curve.png]
+
+Every training stage that led to (or continues from) the shipped weights keeps its validation
+records in ``benchmarks/results/training/`` (one JSONL file per stage, listed in order in
+``stages.json`` with the materials seen before it). ``--add`` appends a stage, copying the
+validation records of a run's log there. The curve plots held-out validation map RMSE (64 fixed
+procedural materials at 128 px, in-memory encoding: normals as unit vectors) against the number
+of training materials seen, beside the flat-normal RMSE.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+from common import RESULTS
+
+STAGES = RESULTS / "training"
+
+
+def load_stages() -> list[dict]:
+    manifest = STAGES / "stages.json"
+    return json.loads(manifest.read_text()) if manifest.exists() else []
+
+
+def add_stage(label: str, log: Path, batch: int, first_start: int = 0) -> None:
+    """Append the validation records of ``log`` (a run of ``batch`` materials per step) as a stage
+    after the existing ones; the first stage starts at ``first_start`` materials seen."""
+    stages = load_stages()
+    records = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    start = stages[-1]["start_materials"] + stages[-1]["steps"] * stages[-1]["batch"] if stages else first_start
+    kept = [r for r in records if "validation_score" in r or "session_steps_per_second" in r]
+    steps = max((r["step"] for r in records if "step" in r), default=0)
+    name = f"{len(stages):02d}_{re.sub('[^a-z0-9]+', '_', label.lower()).strip('_')}.jsonl"
+    STAGES.mkdir(parents=True, exist_ok=True)
+    (STAGES / name).write_text("".join(json.dumps(r) + "\n" for r in kept))
+    stages.append({"label": label, "file": name, "batch": batch, "steps": steps, "start_materials": start})
+    (STAGES / "stages.json").write_text(json.dumps(stages, indent=2) + "\n")
+
+
+def plot(output: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    stages = load_stages()
+    figure, axes = plt.subplots(1, 5, figsize=(20, 4))
+    names = ["normal", "diffuse", "roughness", "specular"]
+    for stage in stages:
+        records = [json.loads(line) for line in (STAGES / stage["file"]).read_text().splitlines()]
+        validations = [r for r in records if "validation_score" in r]
+        x = [(stage["start_materials"] + r["step"] * stage["batch"]) / 1000 for r in validations]
+        for axis, name in zip(axes, names):
+            axis.plot(x, [r["validation_rmse"][name] for r in validations], marker=".", label=stage["label"])
+        axes[0].plot(x, [r["validation_flat_normal_rmse"] for r in validations], "k:", linewidth=1)
+        rerender = [(xi, r["validation_rerender_rmse"]) for xi, r in zip(x, validations) if "validation_rerender_rmse" in r]
+        if rerender:
+            axes[4].plot(*zip(*rerender), marker=".", label=stage["label"])
+    for axis, name in zip(axes, names + ["re-render (sRGB)"]):
+        axis.set_title(f"{name} RMSE" + (" (dotted: flat)" if name == "normal" else ""))
+        axis.set_xlabel("training materials seen [thousands]")
+        axis.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    figure.suptitle("held-out procedural validation (64 materials, 128 px), the shipped model's lineage")
+    figure.tight_layout()
+    output.parent.mkdir(parents=True, exist_ok=True)
+    temporary = output.with_name(f".{output.name}.tmp.png")
+    figure.savefig(temporary, dpi=90)
+    temporary.replace(output)
+    print(f"wrote {output}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--add", nargs=3, metavar=("LABEL", "TRAIN_JSONL", "BATCH"), action="append", default=[],
+                        help="append a stage: its label, its run's log and its batch size")
+    parser.add_argument("--first-start", type=int, default=19_288,
+                        help="materials seen before the first stage (the model shipped on 2026-11-22: 2,411 steps of 8)")
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "learning_curve.png")
+    args = parser.parse_args()
+    for label, log, batch in args.add:
+        add_stage(label, Path(log), int(batch), args.first_start)
+    plot(args.output)
+
+
+if __name__ == "__main__":
+    main()
