@@ -110,3 +110,26 @@ def test_non_tileable_material_has_edges_that_differ():
 def test_any_resolution(size):
     material = generate(5, size=size)
     assert (material.height, material.width) == (size, size)
+
+
+def test_relief_factor_reaches_the_mean_tilt_asked_for():
+    from mideepbasis.data.procedural import relief_factor
+    from mideepbasis.data.procedural.core import height_to_normal
+
+    x = np.linspace(-1.0, 1.0, 64, dtype=np.float32)
+    height = (0.01 * np.sin(3 * x))[None, :].repeat(64, axis=0)  # ridges along y
+    for tilt in (1.0, 10.0, 30.0):
+        normal = height_to_normal(height * relief_factor(height, tilt, False, max_factor=1e4), False)
+        assert np.degrees(np.arccos(normal[..., 2])).mean() == pytest.approx(tilt, abs=0.01)
+    assert relief_factor(np.zeros((8, 8), np.float32), 10.0, False) == 1.0  # nothing to scale
+    assert relief_factor(height, 60.0, False, max_factor=5.0) == 5.0  # out of reach: capped
+
+
+def test_relief_of_every_family_is_scaled_to_the_drawn_tilt():
+    for family in ("stone", "leather", "wood"):
+        tilts = []
+        for seed in range(3):
+            maps = generate(seed, family=family, config=GeneratorConfig(size=64, relief_tilt_deg=(12.0, 12.0),
+                                                                        max_relief_factor=1e4)).to_tensor()
+            tilts.append(float(torch.rad2deg(torch.acos(maps[2].clamp(-1, 1))).mean()))
+        assert tilts == pytest.approx([12.0] * 3, abs=1.5), (family, tilts)

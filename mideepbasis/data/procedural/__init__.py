@@ -51,7 +51,20 @@ class GeneratorConfig:
     """Apply the weathering layers (each with its own chance)."""
 
     bump_scale: tuple[float, float] = (0.6, 4.0)
-    """Range of a random factor on the relief, log-uniform: the same structure deeper or flatter."""
+    """Range of a random factor on the relief, log-uniform: the same structure deeper or flatter
+    (used where ``relief_tilt_deg`` is None)."""
+
+    relief_tilt_deg: tuple[float, float] | None = (2.4, 45.0)
+    """Range (log-uniform) of the mean tilt of the normals that each material's relief is scaled
+    to [deg], whatever its family: relief of every strength for every kind of surface. With it
+    the median mean tilt of 300 materials is 9.4 deg (the shared test set's: 8.9 deg); a random
+    factor on the family's own relief (``bump_scale``) gave 4.1 deg and a quarter of the materials
+    under 1.1 deg, some families being nearly flat. Sparse relief cannot always reach its target
+    under ``max_relief_factor``, so the measured tilts run a little below the drawn ones."""
+
+    max_relief_factor: float = 50.0
+    """Largest factor on a family's relief when scaling it to ``relief_tilt_deg``: a surface flat
+    but for a few scratches keeps them as scratches rather than turning them into walls."""
 
 
 def _family_names(config: GeneratorConfig) -> list[str]:
@@ -84,10 +97,33 @@ def generate_surface(seed: int, config: GeneratorConfig = GeneratorConfig(),
     if config.weathering:
         surface, applied = weather(canvas, surface)
         provenance["layers"] = applied
-    low, high = config.bump_scale
-    height = surface.height * canvas.loguniform(low, high)
+    if config.relief_tilt_deg is None:
+        height = surface.height * canvas.loguniform(*config.bump_scale)
+    else:
+        target = canvas.loguniform(*config.relief_tilt_deg)
+        height = surface.height * relief_factor(surface.height, target, config.tileable, config.max_relief_factor)
     surface = Surface(height, surface.diffuse, surface.roughness, surface.specular, surface.variant).clipped()
     return surface, height_to_normal(surface.height, config.tileable), provenance
+
+
+def relief_factor(height: np.ndarray, tilt_deg: float, tileable: bool, max_factor: float = 50.0) -> float:
+    """The factor s such that the normals of ``s * height`` lean ``tilt_deg`` [deg] on average
+    (the mean over pixels of atan(s |grad h|)), at most ``max_factor``; 1 for a flat height field."""
+    normal = height_to_normal(height, tileable)
+    slope = np.sqrt(normal[..., 0] ** 2 + normal[..., 1] ** 2) / normal[..., 2]
+    target = np.radians(tilt_deg)
+    if not slope.any():
+        return 1.0
+    low, high = -12.0, float(np.log(max_factor))  # bisection on log s: the mean tilt grows with s
+    if np.arctan(np.exp(high) * slope).mean() <= target:
+        return max_factor
+    for _ in range(20):  # 1e-5 in log s
+        middle = 0.5 * (low + high)
+        if np.arctan(np.exp(middle) * slope).mean() < target:
+            low = middle
+        else:
+            high = middle
+    return float(np.exp(0.5 * (low + high)))
 
 
 def generate(seed: int, size: int | None = None, family: str | None = None, tileable: bool | None = None,
