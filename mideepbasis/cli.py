@@ -111,6 +111,9 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
+    parser.add_argument("--truth", type=Path, default=None, metavar="MATERIAL",
+                        help="a material folder of the photographed surface: also render it in the environment "
+                             "(environment_truth.png, environment_difference.png); one photo only")
     parser.set_defaults(run=_run_capture)
 
 
@@ -136,6 +139,13 @@ def _run_capture(args) -> int:
         raise InputError(f"no photos ({', '.join(PHOTO_SUFFIXES)}) in {', '.join(str(p) for p in args.photos)}")
     single = len(photos) == 1
     check_output(args.output, args.overwrite)
+    truth = None
+    if args.truth is not None:
+        from .material import Material
+
+        if not single:
+            raise InputError("--truth compares one capture with its true material: give one photo")
+        truth = Material.load(args.truth)
     model = load_model(args.model)
     config = CaptureConfig(fov=args.fov, light=args.light, refine_steps=args.refine_steps,
                            refine_normals=args.refine_normals, resolution=args.resolution,
@@ -145,7 +155,8 @@ def _run_capture(args) -> int:
         target = args.output if single else args.output / photo.stem
         try:
             result = capture(photo, model=model, config=config, progress=single)
-            save_capture(result, target, exr=args.exr, overwrite=args.overwrite or not single, progress=single)
+            save_capture(result, target, exr=args.exr, overwrite=args.overwrite or not single, progress=single,
+                         truth=truth)
         except MideepbasisError as error:
             if single:
                 raise
@@ -247,22 +258,32 @@ def _add_evaluate(subparsers) -> None:
     parser.add_argument("--limit", type=_positive_int, default=None, help="only the first N materials")
     parser.add_argument("--resolution", type=_positive_int, default=None, help="resample the materials first [pixels]")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--environment", default=None, metavar="studio,sunsky[,FILE.exr]",
+                        help="also compare path-traced renders under these environments (with a noise floor)")
+    parser.add_argument("--environment-spp", type=_positive_int, default=None,
+                        help="samples per pixel of the environment renders (default 256)")
+    parser.add_argument("--environment-resolution", type=_positive_int, default=None,
+                        help="size of the environment renders [pixels] (default 64)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
     parser.set_defaults(run=_run_evaluate)
 
 
 def _run_evaluate(args) -> None:
+    from .environment_eval import parse_environments
     from .evaluate import EvaluationConfig, run_evaluation
 
     if not args.data.is_dir():
         raise InputError(f"{args.data}: no such dataset folder")
+    environments = parse_environments(args.environment) if args.environment is not None else ()
     config = EvaluationConfig(data=str(args.data), format=args.format, out=str(args.output),
                               model=str(args.model) if args.model else None, light=args.light,
                               refine_steps=args.refine_steps, refine_normals=args.refine_normals,
                               baselines=args.baselines,
                               direct_model=str(args.direct_model) if args.direct_model else None,
                               lighting=args.lighting, seed=args.seed, limit=args.limit, resolution=args.resolution,
-                              network_resolution=args.network_resolution)
+                              network_resolution=args.network_resolution, environment=environments,
+                              environment_spp=args.environment_spp,
+                              environment_resolution=args.environment_resolution)
     summary = run_evaluation(config)
     print((args.output / "table.md").read_text())
     for note in summary["notes"]:

@@ -142,14 +142,14 @@ class Scores:
 # --- image metrics -------------------------------------------------------------------------------------
 
 
-def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Structural similarity of images in [0, 1] (Wang et al. 2004; Gaussian 11 x 11, sigma 1.5).
+def ssim_map(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Per-pixel structural similarity of images in [0, 1] (Wang et al. 2004; Gaussian 11 x 11, sigma 1.5).
 
     Args:
         a, b: (N, C, H, W).
 
     Returns:
-        (N,) mean SSIM over pixels and channels.
+        (N, C, H - window + 1, W - window + 1): no padding, so the map covers the inner image.
     """
     coordinates = torch.arange(window, dtype=a.dtype) - (window - 1) / 2
     gauss = torch.exp(-(coordinates**2) / (2 * sigma**2))
@@ -163,8 +163,12 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5)
     mu_a, mu_b = blur(a), blur(b)
     var_a, var_b = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2
     covariance = blur(a * b) - mu_a * mu_b
-    value = ((2 * mu_a * mu_b + c1) * (2 * covariance + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
-    return value.mean(dim=(1, 2, 3))
+    return ((2 * mu_a * mu_b + c1) * (2 * covariance + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean structural similarity of images (N, C, H, W) in [0, 1] over pixels and channels, (N,)."""
+    return ssim_map(a, b, window, sigma).mean(dim=(1, 2, 3))
 
 
 def flip(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -296,6 +300,16 @@ class EvaluationConfig:
 
     resolution: int | None = None
     """Resample the materials to this size first [pixels] (None: as stored)."""
+
+    environment: tuple[str, ...] = ()
+    """Also compare path-traced renders under these environments (``studio``, ``sunsky``,
+    ``uniform``, EXR/HDR files; ``environment_eval``); empty: not at all."""
+
+    environment_spp: int | None = None
+    """Samples per pixel of the environment renders (None: the protocol's)."""
+
+    environment_resolution: int | None = None
+    """Size of the environment renders [pixels] (None: the protocol's)."""
 
 
 def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch.Tensor, int]:
@@ -485,11 +499,35 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
                "network_resolution": config.network_resolution, "row": main_row,
                **summary_scores(main), "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),
                "light_error_deg": main.get("light_error_deg"), "rows": rows, "notes": notes, "seed": config.seed}
+    environment_scores = None
+    if config.environment:
+        environment_scores = _evaluate_environments(config, summary, predictions, truth, per_material, main_row,
+                                                    convention, progress)
     if config.lighting:
         summary["lighting"] = lighting_accuracy(model, truth, config, out, progress)
     summary["seconds"] = time.perf_counter() - started
-    write_evaluation(out, summary, names, per_material, predictions, truth, main_row)
+    write_evaluation(out, summary, names, per_material, predictions, truth, main_row, environment_scores)
     return summary
+
+
+def _evaluate_environments(config: EvaluationConfig, summary: dict, predictions: dict, truth: torch.Tensor,
+                           per_material: dict, main_row: str, convention: str, progress: bool):
+    """Path-traced comparisons of every row under the environments, into ``summary``."""
+    import dataclasses
+    import time
+
+    from .environment_eval import EnvironmentProtocol, environment_summary, evaluate_environments
+
+    started = time.perf_counter()
+    protocol = EnvironmentProtocol(environments=tuple(config.environment), seed=config.seed, floor_seed=config.seed + 1)
+    overrides = {"spp": config.environment_spp, "resolution": config.environment_resolution}
+    protocol = dataclasses.replace(protocol, **{k: v for k, v in overrides.items() if v})
+    # predictions holds the trivial baseline (and the other baselines) under --baselines only.
+    scores = evaluate_environments(dict(predictions), truth, protocol, convention, progress)
+    result = environment_summary(scores, main_row, per_material[main_row]["render_rmse"].numpy(), protocol)
+    summary["env"] = result["environments"]
+    summary["env_protocol"] = {**result["protocol"], "seconds": time.perf_counter() - started}
+    return scores
 
 
 #: The paper's DeepBasis map RMSE (its 122 test scenes), for tables.
@@ -570,8 +608,10 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
 
 
 def write_evaluation(out: Path, summary: dict, names: list[str], per_material: dict, predictions: dict,
-                     truth: torch.Tensor, main_row: str) -> None:
-    """summary.json, per_material.csv, table.md, bars.png and gallery.png in ``out`` (each written atomically)."""
+                     truth: torch.Tensor, main_row: str, environment_scores=None) -> None:
+    """summary.json, per_material.csv, table.md, bars.png and gallery.png in ``out`` (each written
+    atomically); with environment scores also their columns in per_material.csv, their table in
+    table.md, env_bars.png and env_gallery.png."""
     import csv
     import io
     import json
@@ -585,6 +625,12 @@ def write_evaluation(out: Path, summary: dict, names: list[str], per_material: d
     from .reporting import _save_figure, map_tiles
 
     write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
+    if environment_scores is not None:
+        per_material = {row: dict(values) for row, values in per_material.items()}
+        for row, by_environment in environment_scores.rows.items():
+            for environment, values in by_environment.items():
+                for metric, numbers in values.items():
+                    per_material.setdefault(row, {})[f"env_{_label(environment)}_{metric}"] = torch.from_numpy(numbers)
     metrics = sorted({key for values in per_material.values() for key in values})
     buffer = io.StringIO()
     writer = csv.writer(buffer)
@@ -607,10 +653,12 @@ def write_evaluation(out: Path, summary: dict, names: list[str], per_material: d
     header = (f"Evaluation on {summary['n_materials']} materials of {summary['data']} ({summary['format']}), "
               f"light {summary['light']}, convention {summary['convention']}, seed {summary['seed']}. Map RMSE in the "
               "stored encoding; re-rendering under 30 random lights and views per material, clipped sRGB.\n\n")
+    if "env" in summary:
+        lines += ["", environment_table(summary)]
     write_bytes(out / "table.md", (header + "\n".join(lines) + "\n").encode())
 
     rows = list(summary["rows"])
-    figure, axes = plt.subplots(1, 6, figsize=(20, 3.6))
+    figure, axes = plt.subplots(1, 7, figsize=(23, 3.6))
     for axis, (key, title) in zip(axes, columns[:7]):
         values = [summary["rows"][r].get(key, float("nan")) for r in rows]
         axis.bar(range(len(rows)), values, color=[f"C{i}" for i in range(len(rows))])
@@ -619,6 +667,8 @@ def write_evaluation(out: Path, summary: dict, names: list[str], per_material: d
     figure.tight_layout()
     _save_figure(figure, out / "bars.png")
 
+    if environment_scores is not None:
+        _environment_figures(out, summary, environment_scores, main_row, names)
     order = np.argsort(per_material[main_row]["render_rmse"].numpy())
     picks = list(order[:4]) + list(order[-4:])
     strips = []
@@ -626,3 +676,71 @@ def write_evaluation(out: Path, summary: dict, names: list[str], per_material: d
         tiles = map_tiles(truth[index]) + map_tiles(predictions[main_row][index])
         strips.append(np.concatenate(tiles, axis=1))
     write_image(out / "gallery.png", np.clip(np.concatenate(strips, axis=0), 0, 1))
+
+
+def _label(environment: str) -> str:
+    from .environment_eval import environment_label
+
+    return environment_label(environment)
+
+
+def environment_table(summary: dict) -> str:
+    """The markdown table of the environment comparisons in ``summary['env']``."""
+    protocol = summary["env_protocol"]
+    lines = [f"Under environment light: path traced at {protocol['resolution']} px, {protocol['spp']} spp, views "
+             f"{', '.join(f'{v:g}' for v in protocol['views_deg'])} deg from the normal, prediction and truth with "
+             "the same seed; metrics over the pixels that see the sample (RMSE of clipped sRGB). The noise floor "
+             "compares the truth with itself under another seed.", "",
+             "| method | environment | RMSE | FLIP | SSIM |", "|---|---|---|---|---|"]
+    for environment, entry in summary["env"].items():
+        for row, values in entry["rows"].items():
+            lines.append(f"| {row} | {environment} | {values['rmse']:.4f} | {values['flip']:.4f} | {values['ssim']:.4f} |")
+        floor = entry["noise_floor"]
+        lines.append(f"| noise floor | {environment} | {floor['rmse']:.4f} | {floor['flip']:.4f} | {floor['ssim']:.4f} |")
+    rhos = {environment: entry.get("spearman_flash_vs_env") for environment, entry in summary["env"].items()}
+    if any(value is not None for value in rhos.values()):
+        lines += ["", "Spearman's rho between the materials' flash re-rendering RMSE and their RMSE under "
+                  + "; ".join(f"{environment}: {value:.3f}" for environment, value in rhos.items() if value is not None)]
+    return "\n".join(lines)
+
+
+def _environment_figures(out: Path, summary: dict, scores, main_row: str, names: list[str]) -> None:
+    """env_bars.png (RMSE, FLIP, SSIM per row and environment, the noise floor dashed) and
+    env_gallery.png (truth | prediction | difference x 4 of the best and worst materials)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .imageio import write_image
+    from .reporting import _save_figure
+
+    environments = list(summary["env"])
+    rows = list(next(iter(summary["env"].values()))["rows"])
+    figure, axes = plt.subplots(1, 3, figsize=(15, 3.8))
+    width = 0.8 / len(rows)
+    for axis, metric in zip(axes, ("rmse", "flip", "ssim")):
+        for index, row in enumerate(rows):
+            values = [summary["env"][e]["rows"][row][metric] for e in environments]
+            axis.bar(np.arange(len(environments)) + index * width, values, width, label=row, color=f"C{index}")
+        for position, environment in enumerate(environments):
+            axis.hlines(summary["env"][environment]["noise_floor"][metric], position - 0.1, position + 0.9,
+                        colors="k", linestyles="dashed", label="noise floor" if position == 0 else None)
+        axis.set_xticks(np.arange(len(environments)) + 0.4 - width / 2, environments)
+        axis.set_title(f"{metric.upper()} under environment light")
+    axes[0].legend(fontsize=7)
+    figure.tight_layout()
+    _save_figure(figure, out / "env_bars.png")
+
+    keys = list(scores.rows[main_row])
+    mean_rmse = np.mean([scores.rows[main_row][e]["rmse"] for e in keys], axis=0)
+    order = np.argsort(mean_rmse)
+    picks = list(dict.fromkeys(list(order[:3]) + list(order[-3:])))  # best three, worst three, each once
+    strips = []
+    for index in picks:
+        tiles = []
+        for environment in keys:
+            truth, predicted = scores.images["truth"][environment][index], scores.images[main_row][environment][index]
+            tiles += [truth, predicted, np.clip(np.abs(truth - predicted) * 4, 0, 1)]
+        strips.append(np.concatenate(tiles, axis=1))
+    write_image(out / "env_gallery.png", np.concatenate(strips, axis=0))

@@ -10,7 +10,8 @@ Files of a capture folder:
 - ``light.json``: the flash offset [patch half-widths] and its angle [deg], the field of view and
   where it came from, the lighting search's passes;
 - ``photo.png`` (the working photo), ``rerender.png`` (the material under the estimated flash),
-  ``error.png`` (|rerender - photo|, x4), ``environment.png`` (path traced in the studio);
+  ``error.png`` (|rerender - photo|, x4), ``environment.png`` (path traced in the studio; with a
+  true material also ``environment_truth.png`` and ``environment_difference.png``);
 - ``scene.xml``: a Mitsuba scene of the capture that uses the maps above and the ``svbrdf`` plugin
   (``import mideepbasis.render`` registers it before ``mi.load_file``);
 - ``material.gltf`` with ``base_color.png``, ``metallic_roughness.png`` and ``specular_color.png``:
@@ -34,7 +35,7 @@ import torch
 
 from . import constants, geometry
 from .errors import InputError
-from .imageio import write_bytes, write_image
+from .imageio import linear_to_srgb, write_bytes, write_image
 
 
 def _json_bytes(document: dict) -> bytes:
@@ -192,8 +193,13 @@ def check_output(out: Path, overwrite: bool) -> None:
 
 def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: bool = False,
                  environment: str = "studio", environment_spp: int = constants.DEFAULT_SPP,
-                 progress: bool = False) -> Path:
-    """Write everything a capture gives (see the module docstring) into ``out``, atomically."""
+                 progress: bool = False, truth=None) -> Path:
+    """Write everything a capture gives (see the module docstring) into ``out``, atomically.
+
+    With ``truth`` (a Material the user has maps of), also ``environment_truth.png``: the true
+    material path traced in the same scene with the same seed and samples, and
+    ``environment_difference.png``: |truth - capture| of the two sRGB images, times 4.
+    """
     from .render import render_flash
     from .render.scenes import preview_scene, render
     from .reporting import capture_report
@@ -228,6 +234,13 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
         scene = preview_scene(maps[0], environment=environment, spp=environment_spp, convention=material.convention)
         environment_image = render(scene, progress=progress)
         write_image(staging / "environment.png", environment_image.clip(0, 1), encode_srgb=True)
+        if truth is not None:
+            truth_scene = preview_scene(truth.to_tensor(), environment=environment, spp=environment_spp,
+                                        convention=material.convention)
+            truth_image = render(truth_scene, progress=progress)  # the capture's seed: correlated noise
+            write_image(staging / "environment_truth.png", truth_image.clip(0, 1), encode_srgb=True)
+            difference = np.abs(linear_to_srgb(truth_image.clip(0, 1)) - linear_to_srgb(environment_image.clip(0, 1)))
+            write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
 
         (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width, material.convention))
         write_bytes(staging / "material.gltf", _json_bytes(gltf_material(material, staging)))

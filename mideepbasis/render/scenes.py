@@ -29,6 +29,9 @@ ENVIRONMENTS = {"studio": "envmaps/studio.exr"}
 #: The analytic sky, offered beside the shipped maps.
 SUNSKY = "sunsky"
 
+#: A constant white sky of unit radiance (tests: a white Lambertian under it renders to 1).
+UNIFORM = "uniform"
+
 
 def scenes_dir() -> Path:
     """Folder of the installed scene files (a wheel has them inside the package)."""
@@ -84,13 +87,14 @@ def preview_scene(material, environment: str = "studio", spp: int = constants.DE
                   convention: str = constants.DEFAULT_CONVENTION,
                   elevation: float = constants.PREVIEW_ELEVATION_DEG,
                   distance: float = constants.PREVIEW_DISTANCE, fov: float = constants.PREVIEW_FOV_DEG,
-                  scale: float = 1.0) -> mi.Scene:
+                  scale: float = 1.0, pixel_format: str = "rgb", sampler: str = "independent") -> mi.Scene:
     """The sample on a table, seen at an angle under an environment.
 
     Args:
         material: a Material or a (10, H, W) tensor of stacked maps.
         environment: ``studio`` (the shipped HDR map), ``sunsky`` (Mitsuba's analytic sun and
-            sky) or the path of an equirectangular EXR/HDR map (+y up in the map).
+            sky), ``uniform`` (a constant sky of radiance ``scale``) or the path of an
+            equirectangular EXR/HDR map (+y up in the map).
         spp: samples per pixel.
         resolution: image width and height [pixels].
         convention: shading convention of the plugin.
@@ -98,18 +102,23 @@ def preview_scene(material, environment: str = "studio", spp: int = constants.DE
         distance: camera distance from the sample centre [patch half-widths].
         fov: camera field of view [deg].
         scale: radiance scale of the environment [relative].
+        pixel_format: ``rgb``, or ``rgba`` whose alpha marks the pixels that see the sample.
+        sampler: Mitsuba sampler plugin (``independent``, ``multijitter``, ...).
     """
     elevation_rad = math.radians(elevation)
     camera = {"camera_x": 0.0, "camera_y": -distance * math.cos(elevation_rad),
               "camera_z": distance * math.sin(elevation_rad)}
-    common = dict(spp=spp, resolution=resolution, preview_fov=fov, convention=convention, env_scale=scale, **camera)
+    common = dict(spp=spp, resolution=resolution, preview_fov=fov, convention=convention, env_scale=scale,
+                  pixel_format=pixel_format, sampler=sampler, **camera)
     if environment == SUNSKY:
         scene = _load("preview_sunsky.xml", **common)
+    elif environment == UNIFORM:
+        scene = _load("preview_uniform.xml", **common)
     else:
         path = scenes_dir() / ENVIRONMENTS[environment] if environment in ENVIRONMENTS else Path(environment)
         if not path.is_file():
             raise InputError(f"environment {environment!r} is neither {sorted(ENVIRONMENTS)}, "
-                             f"{SUNSKY!r} nor an existing file")
+                             f"{SUNSKY!r}, {UNIFORM!r} nor an existing file")
         scene = _load("preview_envmap.xml", envmap=path.resolve(), **common)
     set_material(scene, material)
     return scene

@@ -1,0 +1,136 @@
+"""Evaluation under environment light: zero against itself, a noise floor that falls as 1/sqrt(spp),
+a white Lambertian under a uniform sky at its known value, the rows in summary, table and plots."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from mideepbasis.environment_eval import (EnvironmentProtocol, EnvironmentRenderer, binned, masked_metrics,
+                                          parse_environments, spearman, to_display)
+from mideepbasis.errors import InputError
+from mideepbasis.evaluate import EvaluationConfig, run_evaluation
+
+#: Tolerances of the Monte Carlo checks.
+TOLERANCES = {
+    "noise_ratio": 0.25,  # relative: floor(16 spp) / floor(256 spp) against sqrt(16)
+    "lambertian": 0.01,  # absolute, linear radiance, against the quadrature of the torch reference
+    "same_seed": 1e-6,  # RMSE of a render against itself: drjit's parallel sums are not bit-exact
+}
+
+
+def material(size=32, seed=0):
+    from mideepbasis.data.procedural import GeneratorConfig, generate
+
+    return generate(seed, config=GeneratorConfig(size=size)).to_tensor()
+
+
+def test_a_material_against_itself_gives_zero_and_the_noise_floor_falls_as_one_over_sqrt_spp():
+    maps = material()
+    floors = {}
+    for spp in (16, 256):
+        renderer = EnvironmentRenderer(EnvironmentProtocol(environments=("studio",), views_deg=(40.0,), resolution=32,
+                                                           spp=spp, sampler="independent"))
+        first, mask = renderer.render(maps, "studio", 40.0, seed=0)
+        again, _ = renderer.render(maps, "studio", 40.0, seed=0)
+        other, _ = renderer.render(maps, "studio", 40.0, seed=1)
+        same = masked_metrics(to_display(first), to_display(again), mask)
+        # Zero up to float rounding (drjit's parallel accumulation is not bit-exact between runs).
+        assert same["rmse"] < TOLERANCES["same_seed"] and same["flip"] < 1e-4 and same["ssim"] == pytest.approx(1.0, abs=1e-6)
+        assert 0.2 < mask.mean() < 0.9  # the sample and the sky are both in view
+        floors[spp] = masked_metrics(to_display(first), to_display(other), mask)["rmse"]
+    assert floors[16] / floors[256] == pytest.approx(4.0, rel=TOLERANCES["noise_ratio"]), floors
+
+
+def test_a_white_lambertian_under_a_uniform_sky_renders_to_its_known_value():
+    from mideepbasis.render import reference
+
+    maps = torch.zeros(10, 8, 8)
+    maps[2], maps[3:6], maps[6] = 1.0, 1.0, 1.0  # flat, white, rough; specular 0 (Schlick still reflects a little)
+    protocol = EnvironmentProtocol(environments=("uniform",), views_deg=(40.0,), resolution=9, spp=4096)
+    image, mask = EnvironmentRenderer(protocol).render(maps, "uniform", 40.0, seed=0)
+    assert mask[4, 4]
+    # The camera looks at the sample centre from 40 deg: integrate f cos over the hemisphere there.
+    view = torch.tensor([0.0, -math.sin(math.radians(40.0)), math.cos(math.radians(40.0))])
+    theta = (torch.arange(512, dtype=torch.float64) + 0.5) / 512 * (math.pi / 2)
+    phi = (torch.arange(1024, dtype=torch.float64) + 0.5) / 1024 * (2 * math.pi)
+    t, p = torch.meshgrid(theta, phi, indexing="ij")
+    light = torch.stack([torch.sin(t) * torch.cos(p), torch.sin(t) * torch.sin(p), torch.cos(t)])[None]
+    ones = torch.ones(1, 3, *t.shape, dtype=torch.float64)
+    value = reference.eval_cosine("physical", ones * torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(1, 3, 1, 1),
+                                  view.double().view(1, 3, 1, 1).expand_as(light), light, ones, ones[:, :1],
+                                  ones * 0.0)
+    expected = float((value[0, 0] * torch.sin(t)).sum() * (math.pi / 2 / 512) * (2 * math.pi / 1024))
+    assert 1.0 < expected < 1.1  # the white diffuse lobe gives 1, Schlick's grazing reflection a little more
+    assert image[4, 4].mean() == pytest.approx(expected, abs=TOLERANCES["lambertian"])
+
+
+def test_binning_averages_blocks_inside_the_mask():
+    image = np.arange(16, dtype=np.float32).reshape(4, 4, 1).repeat(3, axis=2)
+    mask = np.ones((4, 4), bool)
+    mask[0, 0] = False
+    blocks, inside = binned(image, mask, 2)
+    assert blocks[..., 0].tolist() == [[2.5, 4.5], [10.5, 12.5]]
+    assert inside.tolist() == [[False, True], [True, True]]
+
+
+def test_spearman_by_hand():
+    assert spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
+    assert spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+    # x = 1..5, y ranks 2,1,4,3,5: rho = 1 - 6 sum d^2 / (n (n^2 - 1)) = 1 - 6 * 4 / 120
+    assert spearman([1, 2, 3, 4, 5], [0.2, 0.1, 0.4, 0.3, 0.5]) == pytest.approx(0.8)
+
+
+def test_unknown_environments_are_refused_in_one_line(tmp_path):
+    assert parse_environments("studio, sunsky") == ("studio", "sunsky")
+    with pytest.raises(InputError, match="'nowhere.exr' is neither"):
+        parse_environments("studio,nowhere.exr")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from mideepbasis.imageio import write_image
+    from mideepbasis.material import Material
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    folder = tmp_path_factory.mktemp("materials")
+    for index in range(3):
+        maps = material(size=32, seed=index)
+        Material(maps[0:3], maps[3:6], maps[6:7], maps[7:10]).save(folder / f"m{index}")
+    broken = folder / "m9"
+    Material.constant(32, 32).save(broken)
+    write_image(broken / "diffuse.png", np.full((8, 8, 3), 0.5, np.float32))  # wrong size: skipped
+    torch.manual_seed(0)
+    model = save_checkpoint(folder.parent / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())
+    return folder, model
+
+
+def test_evaluation_under_environments_writes_its_rows_and_counts_a_corrupt_material(dataset, tmp_path):
+    folder, model = dataset
+    config = EvaluationConfig(data=str(folder), format="folder", out=str(tmp_path / "out"), model=str(model),
+                              baselines=True, environment=("uniform", "studio"), environment_spp=16,
+                              environment_resolution=24)
+    with pytest.warns(UserWarning, match="skipping"):
+        summary = run_evaluation(config, progress=False)
+    assert summary["n_materials"] == 3 and summary["skipped"] == 1
+    written = json.loads((tmp_path / "out" / "summary.json").read_text())
+    for name in ("uniform", "studio"):
+        entry = written["env"][name]
+        assert set(entry["noise_floor"]) == {"rmse", "flip", "ssim"}
+        assert set(entry["rows"]) == {"model (no refinement)", "model + refinement (125 steps, normals kept)",
+                                      "trivial"}
+        for metric in ("rmse", "flip", "ssim"):
+            assert entry[metric] == entry["rows"]["model (no refinement)"][metric]
+        assert entry["rmse"] > entry["noise_floor"]["rmse"] > 0  # an untrained network is far from the truth
+        assert -1.0 <= entry["spearman_flash_vs_env"] <= 1.0
+    table = (tmp_path / "out" / "table.md").read_text()
+    assert "| noise floor | studio |" in table and "| trivial | uniform |" in table
+    for image in ("env_bars.png", "env_gallery.png"):
+        assert (tmp_path / "out" / image).is_file(), image
+    header = (tmp_path / "out" / "per_material.csv").read_text().splitlines()[0]
+    assert "env_studio_rmse" in header and "env_uniform_ssim" in header
