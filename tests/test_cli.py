@@ -123,3 +123,19 @@ def test_console_command_runs_the_demo(tmp_path):
     assert "map RMSE against the ground truth: normal" in result.stdout
     material = Material.load(tmp_path / "demo")
     assert tuple(material.normal.shape) == (3, 256, 256)
+
+
+def test_capture_with_its_true_material_renders_both_and_their_difference(tmp_path, capsys):
+    from mideepbasis.render.api import example_capture_dir
+
+    photo, truth = example_capture_dir() / "photo.jpg", example_capture_dir() / "truth"
+    out = tmp_path / "captured"
+    assert run("capture", str(photo), "-o", str(out), "--truth", str(truth), "--refine-steps", "0") == 0
+    captured, true = read_image(out / "environment.png"), read_image(out / "environment_truth.png")
+    difference = read_image(out / "environment_difference.png")
+    # Both are 8-bit sRGB files of the same scene; the difference file is 4 |a - b| of them.
+    assert np.allclose(difference, np.clip(4 * np.abs(true - captured), 0, 1), atol=4 * 1.5 / 255)
+    assert 0.005 < np.abs(true - captured).mean() < 0.2  # a capture is close to, not equal to, its truth
+    # Several photos and one truth make no sense: one line, nothing written.
+    assert run("capture", str(photo), str(photo), "-o", str(tmp_path / "two"), "--truth", str(truth)) == 2
+    assert "give one photo" in capsys.readouterr().err and not (tmp_path / "two").exists()
