@@ -27,11 +27,6 @@ from PIL import Image, JpegImagePlugin, PngImagePlugin
 from . import constants
 from .errors import InputError
 
-with warnings.catch_warnings():
-    # colour-science announces at import that optional SciPy / Matplotlib features are missing;
-    # we use none of them.
-    warnings.simplefilter("ignore")
-    import colour
 
 __all__ = ["ImageIOError", "read_image", "write_image", "write_bytes", "srgb_to_linear", "linear_to_srgb",
            "read_focal_length_35mm"]
@@ -58,8 +53,9 @@ def srgb_to_linear(x: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
     """Decode sRGB-encoded values to linear (the sRGB EOTF).
 
     Both paths use the IEC 61966-2-1 piecewise curve: ``x / 12.92`` for ``x <= 0.04045``, else
-    ``((x + 0.055) / 1.055) ** 2.4``. NumPy input goes through colour-science; a torch tensor is
-    decoded in plain torch so gradients flow (and it stays on its device).
+    ``((x + 0.055) / 1.055) ** 2.4``, written out here for NumPy and for torch (gradients flow, the
+    tensor stays on its device). colour-science, whose ``cctf_decoding`` the tests hold both to,
+    is not imported: its package import pulls in matplotlib and costs 1.2 s of every start-up.
 
     Args:
         x: encoded values [0, 1], any shape.
@@ -71,15 +67,16 @@ def srgb_to_linear(x: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
         # Clamp the base of the power so the unused branch of `where` has a finite gradient.
         power = ((x.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4
         return torch.where(x <= 0.04045, x / 12.92, power)
-    return np.asarray(colour.cctf_decoding(np.asarray(x), function="sRGB"), dtype=np.float32)
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def linear_to_srgb(x: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
     """Encode linear values with the sRGB OETF (inverse EOTF).
 
     Both paths use the IEC 61966-2-1 piecewise curve: ``12.92 x`` for ``x <= 0.0031308``, else
-    ``1.055 x ** (1 / 2.4) - 0.055``. NumPy input goes through colour-science; a torch tensor is
-    encoded in plain torch so gradients flow.
+    ``1.055 x ** (1 / 2.4) - 0.055``, for NumPy and for torch (gradients flow), checked against
+    colour-science's ``cctf_encoding`` in the tests.
 
     Args:
         x: linear values [0, 1], any shape.
@@ -90,7 +87,8 @@ def linear_to_srgb(x: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
     if isinstance(x, torch.Tensor):
         power = 1.055 * x.clamp(min=0.0031308) ** (1.0 / 2.4) - 0.055
         return torch.where(x <= 0.0031308, x * 12.92, power)
-    return np.asarray(colour.cctf_encoding(np.asarray(x), function="sRGB"), dtype=np.float32)
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.maximum(x, 0.0031308) ** (1.0 / 2.4) - 0.055).astype(np.float32)
 
 
 # --- reading ---------------------------------------------------------------------------------------

@@ -289,3 +289,36 @@ def test_dark_clipped_and_broken_exif_photos_warn_but_go_through(tmp_path):
         _, fov, source, notes = load_photo(tmp_path / "broken_exif.jpg", resolution=64)
     assert (fov, source) == (45.0, "default")
     assert any("EXIF block of 'broken_exif.jpg' could not be parsed" in note for note in notes)
+
+
+def test_small_adam_is_torch_adam_to_the_bit():
+    from mideepbasis.capture import SmallAdam
+
+    torch.manual_seed(0)
+    a = torch.randn(1, 10, 10, requires_grad=True)
+    b = a.detach().clone().requires_grad_(True)
+    target = torch.randn(1, 10, 10)
+    reference, ours = torch.optim.Adam([a], lr=0.01), SmallAdam(b, lr=0.01)
+    for _ in range(200):
+        for parameter, optimizer in ((a, reference), (b, ours)):
+            parameter.grad = None
+            ((parameter - target).abs().mean() + (parameter**3).mean()).backward()
+            optimizer.step()
+    assert torch.equal(a, b)
+
+
+def test_a_capture_imports_neither_dynamo_nor_plotting_libraries(tmp_path):
+    # torch._dynamo (pulled in by torch.optim), matplotlib and colour-science cost seconds of start-up.
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from mideepbasis.capture import capture, CaptureConfig\n"
+              "from mideepbasis.export import save_capture\n"
+              "from mideepbasis.render.api import example_capture_dir\n"
+              "result = capture(example_capture_dir() / 'photo.jpg', config=CaptureConfig(refine_steps=2))\n"
+              f"save_capture(result, {str(tmp_path / 'out')!r})\n"
+              "print(sorted(m for m in ('torch._dynamo', 'matplotlib', 'colour', 'sympy') if m in sys.modules))\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip().splitlines()[-1] == "[]"

@@ -156,6 +156,18 @@ def test_srgb_numpy_torch_and_reference_agree():
     assert srgb_to_linear(torch.zeros(2, dtype=torch.float16)).dtype == torch.float16
 
 
+def test_srgb_agrees_with_colour_science():
+    # colour-science is not imported by the package (its import costs 1.2 s); it is the library reference.
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import colour
+    x = np.linspace(0.0, 1.0, 1001)
+    np.testing.assert_allclose(srgb_to_linear(x), colour.cctf_decoding(x, function="sRGB"), atol=1e-6)
+    np.testing.assert_allclose(linear_to_srgb(x), colour.cctf_encoding(x, function="sRGB"), atol=1e-6)
+
+
 def test_srgb_torch_is_differentiable():
     # Points on both branches, away from the threshold (the curve is C1 only approximately there).
     x = torch.tensor([0.0, 0.01, 0.02, 0.2, 0.5, 0.9, 1.0], dtype=torch.float64, requires_grad=True)
