@@ -180,6 +180,7 @@ def _add_demo(subparsers) -> None:
                     "material with a hand-held offset) and prints the error against its ground truth.")
     parser.add_argument("-o", "--output", type=Path, default=Path("demo"), metavar="OUT_DIR")
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT_DIR")
     parser.set_defaults(run=_run_demo)
 
 
@@ -190,14 +191,15 @@ def _run_demo(args) -> None:
 
     from .capture import capture
     from .evaluate import light_error_deg, map_rmse
-    from .export import save_capture
+    from .export import check_output, save_capture
     from .material import Material
     from .render.api import example_capture_dir
 
     folder = example_capture_dir()
     truth_light = json.loads((folder / "truth.json").read_text())
+    check_output(args.output, args.overwrite)  # before the work, and never a folder the user did not offer
     result = capture(folder / "photo.jpg", model=args.model, progress=True)
-    save_capture(result, args.output, overwrite=True, progress=True)
+    save_capture(result, args.output, overwrite=args.overwrite, progress=True)
     for note in result.notes:
         print(f"note: {note}")
     truth = Material.load(folder / "truth").to_tensor()[None]

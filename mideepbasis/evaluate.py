@@ -557,7 +557,8 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
         group = next(g for g, bound in ROUGHNESS_GROUPS.items() if roughness < bound)
         offsets = sample_offsets(offsets_per_material, torch.Generator().manual_seed(config.seed + 1000 + index), config.fov)
         for offset in offsets:
-            photos, _ = flash_photos(truth[index:index + 1], offset.view(1, 2), config.fov, convention)
+            photos, _ = flash_photos(truth[index:index + 1], offset.view(1, 2), config.fov, convention,
+                                     model.config.plane_extent)
             found, _, _ = search_light(model, photos[0], config.fov, capture_config)
             errors[group].append(light_error_deg(found, offset.tolist(), config.fov))
     table = {group: {"count": len(v), "mean_deg": float(np.mean(v)) if v else None,
@@ -577,7 +578,8 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
         offsets = torch.stack([radius * torch.cos(directions), radius * torch.sin(directions)], -1)
         maps_rmse, render_rmse = [], []
         for index in range(len(truth)):
-            photos, lights_true = flash_photos(truth[index:index + 1], offsets[index:index + 1], config.fov, convention)
+            photos, lights_true = flash_photos(truth[index:index + 1], offsets[index:index + 1], config.fov, convention,
+                                               model.config.plane_extent)
             position = lights_true
             if config.light == "search":
                 found, _, _ = search_light(model, photos[0], config.fov, capture_config)

@@ -139,3 +139,12 @@ def test_capture_with_its_true_material_renders_both_and_their_difference(tmp_pa
     # Several photos and one truth make no sense: one line, nothing written.
     assert run("capture", str(photo), str(photo), "-o", str(tmp_path / "two"), "--truth", str(truth)) == 2
     assert "give one photo" in capsys.readouterr().err and not (tmp_path / "two").exists()
+
+
+def test_demo_never_replaces_a_folder_unasked(tmp_path, capsys):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "precious.txt").write_text("mine")
+    assert run("demo", "-o", str(out)) == 2
+    assert "exists and is not empty" in capsys.readouterr().err
+    assert (out / "precious.txt").read_text() == "mine"
