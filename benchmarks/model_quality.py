@@ -28,7 +28,6 @@ from mideepbasis.model.checkpoint import load_model, shipped_model_path
 
 SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 PAPER = {"normal": 0.053, "diffuse": 0.031, "roughness": 0.162, "specular": 0.043}
-TRIVIAL_QUOTED = {"normal": 0.074, "diffuse": 0.061, "roughness": 0.173, "specular": 0.040}
 
 
 def main() -> None:
@@ -69,7 +68,7 @@ def main() -> None:
     report = {"model": str(args.model or shipped_model_path()), "convention": convention, "materials": len(materials),
               "network_resolution": network_resolution_limit(model, args.network_resolution) or 256, "light": "centred flash", "rerender": "30 random lights and views, seed 0, clipped sRGB",
               "prediction_seconds": round(seconds, 1), "rows": rows, "paper_deepbasis_122_scenes": PAPER,
-              "trivial_quoted_in_issue": TRIVIAL_QUOTED, "per_material_names": names}
+              "per_material_names": names}
     write_report(args.output, "model_quality", report)
     print(f"{'':10s} {'normal':>8s} {'diffuse':>8s} {'rough':>8s} {'specular':>8s} {'render':>8s}")
     for name, row in rows.items():
