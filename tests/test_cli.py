@@ -123,6 +123,15 @@ def test_console_command_runs_the_demo(tmp_path):
     assert "map RMSE against the ground truth: normal" in result.stdout
     material = Material.load(tmp_path / "demo")
     assert tuple(material.normal.shape) == (3, 256, 256)
+    # Bounds on what it prints: the shipped model's capture of its own bundled photo (2026-11-29:
+    # light off by 4.5 deg; normal 0.011, diffuse 0.046, roughness 0.139, specular 0.018).
+    import re
+
+    light_error = float(re.search(r"true offset off by ([0-9.]+) deg", result.stdout).group(1))
+    errors = dict(re.findall(r"(normal|diffuse|roughness|specular) ([0-9.]+)", result.stdout.split("ground truth:")[1]))
+    assert light_error < 8.0
+    bounds = {"normal": 0.03, "diffuse": 0.07, "roughness": 0.2, "specular": 0.04}
+    assert all(float(errors[name]) < bound for name, bound in bounds.items()), errors
 
 
 def test_capture_with_its_true_material_renders_both_and_their_difference(tmp_path, capsys):

@@ -101,5 +101,37 @@ def test_evaluation_is_seeded_and_skips_a_corrupt_material(dataset, tmp_path):
     for name in ("summary.json", "per_material.csv", "table.md", "bars.png", "gallery.png"):
         assert (tmp_path / "a" / name).is_file(), name
     written = json.loads((tmp_path / "a" / "summary.json").read_text())
-    assert written["render_lpips"] is None or isinstance(written["render_lpips"], float)
+    # LPIPS is computed only where its weights are on this machine (nothing is downloaded); the note says which.
+    from mideepbasis.evaluate import LPIPS
+
+    if LPIPS.weight_files()[2] is None:
+        assert isinstance(written["render_lpips"], float) and written["render_lpips"] >= 0
+    else:
+        assert written["render_lpips"] is None and any("LPIPS skipped" in note for note in written["notes"])
     assert (tmp_path / "a" / "per_material.csv").read_text().count("\n") == 1 + 3 * 3
+
+
+def test_lpips_plumbing_with_a_seeded_backbone_of_alexnets_shapes(tmp_path):
+    # The real weights are never downloaded; random ones of the same shapes test the loading and the formula.
+    from mideepbasis.evaluate import LPIPS
+
+    torch.manual_seed(0)
+    shapes = {"features.0": (64, 3, 11, 11), "features.3": (192, 64, 5, 5), "features.6": (384, 192, 3, 3),
+              "features.8": (256, 384, 3, 3), "features.10": (256, 256, 3, 3)}
+    state = {}
+    for name, shape in shapes.items():
+        state[f"{name}.weight"] = torch.randn(shape) * 0.05
+        state[f"{name}.bias"] = torch.zeros(shape[0])
+    state["classifier.1.weight"] = torch.zeros(2, 2)  # ignored: only the features are used
+    alexnet, linear = tmp_path / "alexnet.pth", tmp_path / "alex.pth"
+    torch.save(state, alexnet)
+    lins = {f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1) for i, c in enumerate(LPIPS.CHANNELS)}
+    torch.save(lins, linear)
+    metric = LPIPS(alexnet, linear)
+    a, b = torch.rand(2, 3, 64, 64), torch.rand(2, 3, 64, 64)
+    assert torch.allclose(metric(a, a), torch.zeros(2), atol=1e-7)
+    forward, backward = metric(a, b), metric(b, a)
+    assert (forward > 0).all() and torch.allclose(forward, backward, rtol=1e-5)
+    # The distance is linear in the per-layer weights: doubling them doubles it.
+    torch.save({k: 2 * v for k, v in lins.items()}, linear)
+    assert torch.allclose(LPIPS(alexnet, linear)(a, b), 2 * forward, rtol=1e-5)
