@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from . import constants, geometry
-from .data.synth import lighting_mark, network_input
+from .data.synth import flash_falloff, lighting_mark, network_input
 from .errors import InputError
 from .imageio import read_focal_length_35mm, read_image
 from .material import Material
@@ -277,7 +277,10 @@ def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tenso
     stride = model.config.stride
     pad_h, pad_w = (-height) % stride, (-width) % stride
     mark = lighting_mark(lights, height, width, fov, model.config.convention, model.config.plane_extent)
-    inputs = network_input(photos, mark)
+    extra = model.config.extra_inputs
+    falloff = (flash_falloff(lights, height, width, fov, model.config.convention, model.config.plane_extent)
+               if "shading" in extra else None)
+    inputs = network_input(photos, mark, extra, falloff)
     if pad_h or pad_w:
         inputs = F.pad(inputs, (0, pad_w, 0, pad_h), mode="reflect")
     with torch.no_grad():

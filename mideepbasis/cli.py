@@ -338,6 +338,9 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--no-local", action="store_true", help="ablation: no local bases")
     parser.add_argument("--no-global", action="store_true", help="ablation: no global bases")
     parser.add_argument("--no-bases", action="store_true", help="ablation: direct per-pixel prediction")
+    parser.add_argument("--extra-inputs", default="", metavar="shading,highpass",
+                        help="optional input channels that make the shading explicit (with --init from a 9-channel "
+                             "model, their weights start at zero)")
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--workers", type=int, default=defaults.workers, help="material-generating worker processes")
     parser.add_argument("--checkpoint-minutes", type=float, default=defaults.checkpoint_minutes)
@@ -373,6 +376,14 @@ def _run_train(args) -> None:
     for flag, key in (("no_local", "use_local"), ("no_global", "use_global"), ("no_bases", "use_bases")):
         if getattr(args, flag):
             network[key] = False
+    extra = tuple(name.strip() for name in args.extra_inputs.split(",") if name.strip())
+    if extra:
+        from .data.synth import EXTRA_INPUTS
+
+        unknown = sorted(set(extra) - set(EXTRA_INPUTS))
+        if unknown:
+            raise InputError(f"--extra-inputs: unknown {unknown}; expected some of {list(EXTRA_INPUTS)}")
+        network.update(extra_inputs=extra, input_channels=9 + 3 * len(extra))
     config = TrainConfig(out=str(args.out), preset=args.preset, network=network, data=tuple(args.data or ["procedural"]),
                          steps=args.steps, batch=args.batch, size=args.size, lr=args.lr, local_lr=args.local_lr,
                          vc_weight=args.vc_weight, normal_weight=args.normal_weight,

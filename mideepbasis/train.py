@@ -450,13 +450,24 @@ class Trainer:
 
     # --- checkpoints ---------------------------------------------------------------------------
 
+    def _extra_inputs(self) -> tuple[str, ...]:
+        return getattr(self.model, "module", self.model).config.extra_inputs
+
     def _initialise_from(self, path: str) -> None:
+        from dataclasses import replace
+
         from .model.checkpoint import load_model
 
         source = load_model(path)
-        if source.config != self.model.config:
+        config = self.model.config
+        same_but_inputs = replace(source.config, extra_inputs=config.extra_inputs,
+                                  input_channels=config.input_channels) == config
+        if source.config != config and not same_but_inputs:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} preset)")
-        self.model.load_state_dict(source.state_dict())
+        state = source.state_dict()
+        if source.config != config:
+            state = widen_inputs(state, self.model.state_dict(), source.config.input_channels)
+        self.model.load_state_dict(state)
 
     def _resume(self) -> None:
         path = self.out / "checkpoint.safetensors"
@@ -509,7 +520,7 @@ class Trainer:
     def train_step(self, maps: torch.Tensor) -> dict:
         config = self.config
         maps = maps.to(self.device, non_blocking=True)
-        batch = synthesize(maps, self.generator, self.synthesis)
+        batch = synthesize(maps, self.generator, self.synthesis, self._extra_inputs())
         use_vc = config.vc_weight > 0
         inputs = torch.cat([batch.inputs, batch.varied_inputs]) if use_vc else batch.inputs
         lights = torch.cat([batch.lights, batch.lights]) if use_vc else batch.lights
@@ -639,7 +650,8 @@ class Trainer:
 
             maps = torch.stack([generate(VALIDATION_SEED + i, config=GeneratorConfig(size=self.config.size)).to_tensor()
                                 for i in range(self.config.validation_count)])
-            self._validation_batch = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis)
+            self._validation_batch = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis,
+                                                self._extra_inputs())
         return self._validation_batch
 
     def validate(self, chunk: int = 16) -> dict:
@@ -688,6 +700,25 @@ class Trainer:
                                 lights.to(device), views.to(device), self.synthesis.convention, render_backend())
                   for start in range(0, maps.shape[0], 16)]
         return torch.cat(errors).mean().item()
+
+
+def widen_inputs(source: dict, target: dict, source_inputs: int) -> dict:
+    """Weights of a network with ``source_inputs`` input channels for one with more (extra inputs):
+    every tensor whose input dimension (1) grew gets zero weights for the new channels, which the
+    wider network's input holds right after the first ``source_inputs`` ones; the rest is copied.
+    The wider network then computes exactly what the narrower one did, and learns to use the rest."""
+    widened = {}
+    for name, value in source.items():
+        shape = target[name].shape
+        if value.shape == shape:
+            widened[name] = value
+            continue
+        added = shape[1] - value.shape[1]
+        if value.ndim < 2 or added <= 0 or value.shape[0] != shape[0] or value.shape[2:] != shape[2:]:
+            raise InputError(f"cannot widen the inputs of {name}: {tuple(value.shape)} -> {tuple(shape)}")
+        zeros = value.new_zeros(value.shape[0], added, *value.shape[2:])
+        widened[name] = torch.cat([value[:, :source_inputs], zeros, value[:, source_inputs:]], dim=1)
+    return widened
 
 
 #: Seed of the first held-out validation material (training draws material numbers from 0 up).

@@ -26,6 +26,9 @@ VARIANTS = {
     "map": ["--render-weight", "0"],
     "render1": ["--render-weight", "1"],
     "render3": ["--render-weight", "3"],
+    # Issue 11 section 1: input channels that make the shading explicit (widened from a 9-channel --init).
+    "shading": ["--render-weight", "0", "--extra-inputs", "shading"],
+    "shading_highpass": ["--render-weight", "0", "--extra-inputs", "shading,highpass"],
 }
 
 COMMON = ["--preset", "compact", "--data", "procedural", "--render-backend", "torch", "--bf16",
@@ -76,7 +79,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=7.5, help="wall time of the real runs [minutes]")
     parser.add_argument("--calibration-minutes", type=float, default=0.75)
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
+    parser.add_argument("--variants", nargs="+", default=["map", "shading", "shading_highpass"],
+                        choices=list(VARIANTS))
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--lr", type=float, default=5e-4)
     parser.add_argument("--local-lr", type=float, default=1.5e-3)

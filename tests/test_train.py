@@ -222,3 +222,22 @@ def test_validation_keeps_the_best_weights_and_a_time_limit_stops_with_a_checkpo
     assert state["training_state"]["step"] == trainer.step
     assert state["training_state"]["best_validation_score"] == pytest.approx(best["validation_score"])
     assert not (tmp_path / "run" / "model.safetensors").exists()  # stopped, not finished
+
+
+def test_widened_inputs_start_as_the_narrow_network():
+    from mideepbasis.model.network import DeepBasisNet, preset
+    from mideepbasis.train import widen_inputs
+
+    torch.manual_seed(0)
+    narrow = DeepBasisNet(preset("tiny")).eval()
+    wide = DeepBasisNet(preset("tiny", extra_inputs=("shading", "highpass"), input_channels=15)).eval()
+    wide.load_state_dict(widen_inputs(narrow.state_dict(), wide.state_dict(), 9))
+    inputs = torch.rand(2, 9, 32, 32) * 2 - 1
+    lights = torch.tensor([[0.1, 0.0, 2.4], [0.0, -0.2, 2.4]])
+    extra = torch.rand(2, 6, 32, 32) * 2 - 1
+    with torch.no_grad():
+        a = narrow(inputs, lights, ).maps
+        b = wide(torch.cat([inputs, extra], 1), lights).maps
+    torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="9 \\+ 3 per extra input"):
+        DeepBasisNet(preset("tiny", extra_inputs=("shading",)))

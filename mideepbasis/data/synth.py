@@ -191,18 +191,82 @@ def lighting_mark(lights: torch.Tensor, height: int, width: int, fov: float = co
     return image.clamp(0.0, 1.0)
 
 
-def network_input(photo: torch.Tensor, mark: torch.Tensor) -> torch.Tensor:
-    """The 9-channel network input: [photo, log-compressed photo, lighting mark], each in [-1, 1].
+#: Optional input channels (three each) that make the shading explicit (``NetworkConfig.extra_inputs``):
+#: ``shading``: the photo divided by the flash's own falloff (a white Lambertian rendered under the
+#: same flash), log-compressed: what is left is albedo times relative shading, plus the highlight;
+#: ``highpass``: the log photo minus its Gaussian blur (sigma 1/64 of the width): local shading
+#: and texture, the flash's slow falloff removed.
+EXTRA_INPUTS = ("shading", "highpass")
+
+#: Largest ratio of photo to falloff the ``shading`` channels represent (highlights saturate there).
+MAX_SHADING_RATIO = 4.0
+
+
+def flash_falloff(lights: torch.Tensor, height: int, width: int, fov: float = constants.DEFAULT_FOV_DEG,
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
+    """A flat white Lambertian (specular 0) rendered under each co-located flash, (B, 1, H, W): the
+    flash's falloff and the cosine at every pixel (``physical``: (H / d)^3 for a flash at height H
+    and distance d; a co-located flash sees no Fresnel reflection from specular 0)."""
+    from ..render import render_flash
+
+    white = torch.zeros(1, constants.BASIS_CHANNELS, height, width)
+    white[:, 2], white[:, 3:6], white[:, 6] = 1.0, 1.0, 1.0
+    white = white.to(lights).expand(lights.shape[0], -1, -1, -1)
+    with torch.no_grad():
+        image = render_flash(white, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
+    return image[:, :1]
+
+
+def extra_input_channels(photo: torch.Tensor, names: tuple[str, ...], falloff: torch.Tensor | None = None) -> torch.Tensor:
+    """The optional input channels ``names`` (``EXTRA_INPUTS``) of photos (B, 3, H, W) in [0, 1], each in
+    [-1, 1], (B, 3 len(names), H, W). ``shading`` needs the flash's ``falloff`` (B, 1, H, W)."""
+    channels = []
+    for name in names:
+        if name == "shading":
+            if falloff is None:
+                raise ValueError("the shading input needs the flash falloff")
+            ratio = (photo / falloff.clamp(min=1e-4)).clamp(0.0, MAX_SHADING_RATIO)
+            channels.append(log_compress(ratio / MAX_SHADING_RATIO) * 2.0 - 1.0)
+        elif name == "highpass":
+            logarithm = torch.log(photo + LOG_EPS)
+            sigma = max(0.5, photo.shape[-1] / 64.0)
+            channels.append((0.5 * (logarithm - _gaussian_blur(logarithm, sigma))).clamp(-1.0, 1.0))
+        else:
+            raise ValueError(f"unknown extra input {name!r}; expected some of {EXTRA_INPUTS}")
+    return torch.cat(channels, dim=1) if channels else photo.new_zeros(photo.shape[0], 0, *photo.shape[-2:])
+
+
+def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of (B, C, H, W), edges reflected."""
+    radius = max(1, int(3 * sigma))
+    offsets = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
+    kernel = torch.exp(-(offsets**2) / (2 * sigma**2))
+    kernel = (kernel / kernel.sum()).view(1, 1, 1, -1).expand(image.shape[1], 1, 1, -1)
+    padded = torch.nn.functional.pad(image, (radius, radius, 0, 0), mode="reflect")
+    image = torch.nn.functional.conv2d(padded, kernel, groups=image.shape[1])
+    padded = torch.nn.functional.pad(image, (0, 0, radius, radius), mode="reflect")
+    return torch.nn.functional.conv2d(padded, kernel.transpose(-1, -2), groups=image.shape[1])
+
+
+def network_input(photo: torch.Tensor, mark: torch.Tensor, extra_inputs: tuple[str, ...] = (),
+                  falloff: torch.Tensor | None = None) -> torch.Tensor:
+    """The network input: [photo, log-compressed photo, lighting mark] (9 channels), each in [-1, 1],
+    then the ``extra_inputs`` channels (``extra_input_channels``).
 
     Args:
         photo: (B, 3, H, W) linear photo; clipped to [0, 1].
         mark: (B, 3, H, W) lighting-mark image in [0, 1].
+        extra_inputs: names of optional channels (the network's ``config.extra_inputs``).
+        falloff: (B, 1, H, W) the flash's falloff (``flash_falloff``), for ``shading``.
 
     Returns:
-        (B, 9, H, W).
+        (B, 9 + 3 len(extra_inputs), H, W).
     """
     photo = photo.clamp(0.0, 1.0)
-    return torch.cat([photo, log_compress(photo), mark], dim=1) * 2.0 - 1.0
+    base = torch.cat([photo, log_compress(photo), mark], dim=1) * 2.0 - 1.0
+    if not extra_inputs:
+        return base
+    return torch.cat([base, extra_input_channels(photo, tuple(extra_inputs), falloff)], dim=1)
 
 
 # --- a training batch -------------------------------------------------------------------------------
@@ -233,11 +297,11 @@ class TrainingBatch:
 
 
 def synthesize(maps: torch.Tensor, generator: torch.Generator,
-               config: SynthesisConfig = SynthesisConfig()) -> TrainingBatch:
+               config: SynthesisConfig = SynthesisConfig(), extra_inputs: tuple[str, ...] = ()) -> TrainingBatch:
     """Render and photograph a batch of materials and their variations (one renderer call).
 
     M and M + xi share the flash position and the camera's gains (one camera, one shot each)
-    but not the noise.
+    but not the noise. ``extra_inputs``: the network's optional input channels.
     """
     from ..render import render_flash
 
@@ -254,7 +318,10 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
     photos = simulate_photo(radiance, generator, config, gains=torch.cat([gains, gains]))
     mark = lighting_mark(lights, height, width, config.fov, config.convention)
     marks = torch.cat([mark, mark])
-    inputs = network_input(photos, marks)
+    falloff = None
+    if "shading" in extra_inputs:
+        falloff = flash_falloff(lights, height, width, config.fov, config.convention).repeat(2, 1, 1, 1)
+    inputs = network_input(photos, marks, tuple(extra_inputs), falloff)
     return TrainingBatch(maps=maps, varied_maps=varied, variation=variation, offsets=offsets, lights=lights,
                          inputs=inputs[:batch], varied_inputs=inputs[batch:], photos=photos[:batch],
                          varied_photos=photos[batch:])

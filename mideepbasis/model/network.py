@@ -82,7 +82,11 @@ class NetworkConfig:
     """Shading convention of the error-map render (and of the training renders)."""
 
     input_channels: int = 9
-    """Channels of the network input."""
+    """Channels of the network input: 9, plus 3 per entry of ``extra_inputs``."""
+
+    extra_inputs: tuple[str, ...] = ()
+    """Optional input channels that make the shading explicit, after the 9 of DESIGN section 1:
+    ``shading`` and/or ``highpass`` (``data.synth.EXTRA_INPUTS``)."""
 
     plane_extent: float = 1.0
     """Half-width of the sample the camera frames [patch half-widths] for the error map's render:
@@ -281,6 +285,9 @@ class DeepBasisNet(nn.Module):
     def __init__(self, config: NetworkConfig = PRESETS["compact"]):
         super().__init__()
         self.config = config
+        if config.input_channels != 9 + 3 * len(config.extra_inputs):
+            raise ValueError(f"input_channels must be 9 + 3 per extra input ({list(config.extra_inputs)}), "
+                             f"got {config.input_channels}")
         if len(config.decoder_channels) != len(config.encoder_channels) - 1:
             raise ValueError("decoder_channels needs one entry fewer than encoder_channels (the last level outputs the weights)")
         n = config.num_bases

@@ -121,3 +121,33 @@ def test_synthesize_renders_both_materials_under_the_same_flash():
     expected = render_flash(batch.varied_maps, batch.lights.view(3, 1, 3), backend="torch")[:, 0].clamp(0, 1)
     assert torch.allclose(batch.varied_photos, expected, atol=1e-4)
     assert torch.equal(batch.inputs[:, 6:], batch.varied_inputs[:, 6:])  # one flash, one lighting mark
+
+
+def test_flash_falloff_is_the_white_lambertian_of_the_physical_convention():
+    from mideepbasis import constants, geometry
+    from mideepbasis.data.synth import flash_falloff
+
+    lights = geometry.light_positions(torch.tensor([[0.3, -0.2]]))
+    falloff = flash_falloff(lights, 8, 8)
+    points = geometry.pixel_points(8, 8)
+    distance = torch.linalg.vector_norm(lights[0].view(3, 1, 1) - points, dim=0)
+    height = constants.camera_height()
+    # (1 / pi) cos * pi H^2 / d^2 with cos = H / d, for a flash at height H.
+    torch.testing.assert_close(falloff[0, 0], (height / distance) ** 3, rtol=1e-5, atol=1e-6)
+
+
+def test_extra_inputs_are_bounded_and_mean_what_they_say():
+    from mideepbasis.data.synth import extra_input_channels, network_input
+
+    photo = torch.rand(2, 3, 32, 32) * 0.8
+    falloff = torch.full((2, 1, 32, 32), 0.5)
+    channels = extra_input_channels(photo, ("shading", "highpass"), falloff)
+    assert channels.shape == (2, 6, 32, 32) and channels.abs().max() <= 1.0
+    # shading: a photo equal to the falloff (a white Lambertian) gives a ratio of 1 everywhere.
+    flat = extra_input_channels(falloff.expand(2, 3, 32, 32), ("shading",), falloff)
+    assert torch.allclose(flat, flat[0, 0, 0, 0].expand_as(flat))
+    # highpass: a constant photo has no detail.
+    assert extra_input_channels(torch.full((1, 3, 16, 16), 0.3), ("highpass",)).abs().max() < 1e-5
+    inputs = network_input(photo, torch.rand(2, 3, 32, 32), ("shading", "highpass"), falloff)
+    assert inputs.shape == (2, 15, 32, 32)
+    assert torch.equal(inputs[:, :9], network_input(photo, inputs[:, 6:9] * 0.5 + 0.5))
