@@ -648,7 +648,10 @@ class Trainer:
         if self._validation_batch is None:
             from .data.procedural import GeneratorConfig, generate
 
-            maps = torch.stack([generate(VALIDATION_SEED + i, config=GeneratorConfig(size=self.config.size)).to_tensor()
+            # The generator as it was when the learning curve began (relief by a factor, not scaled
+            # to a drawn tilt), so that validations of every session compare.
+            config = GeneratorConfig(size=self.config.size, relief_tilt_deg=None)
+            maps = torch.stack([generate(VALIDATION_SEED + i, config=config).to_tensor()
                                 for i in range(self.config.validation_count)])
             self._validation_batch = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis,
                                                 self._extra_inputs())
