@@ -29,3 +29,30 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared evaluation data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def evaluation_dataset(tmp_path_factory):
+    """A folder of three readable 32 px materials and one corrupt one (a map of the wrong size),
+    and an untrained tiny checkpoint: (folder, checkpoint path)."""
+    import numpy as np
+    import torch
+
+    from mideepbasis.imageio import write_image
+    from mideepbasis.material import Material
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    folder = tmp_path_factory.mktemp("materials")
+    generator = torch.Generator().manual_seed(0)
+    for index in range(3):
+        normal = torch.nn.functional.normalize(torch.randn(3, 32, 32, generator=generator) * 0.2
+                                               + torch.tensor([0, 0, 1.0]).view(3, 1, 1), dim=0)
+        Material(normal, torch.rand(3, 32, 32, generator=generator), torch.rand(1, 32, 32, generator=generator),
+                 torch.full((3, 32, 32), 0.04)).save(folder / f"m{index}")
+    broken = folder / "m9"
+    Material.constant(32, 32).save(broken)
+    write_image(broken / "diffuse.png", np.full((8, 8, 3), 0.5, np.float32))  # wrong size: skipped
+    torch.manual_seed(0)
+    model = save_checkpoint(folder.parent / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())
+    return folder, model

@@ -91,27 +91,8 @@ def test_unknown_environments_are_refused_in_one_line(tmp_path):
         parse_environments("studio,nowhere.exr")
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    from mideepbasis.imageio import write_image
-    from mideepbasis.material import Material
-    from mideepbasis.model.checkpoint import save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, preset
-
-    folder = tmp_path_factory.mktemp("materials")
-    for index in range(3):
-        maps = material(size=32, seed=index)
-        Material(maps[0:3], maps[3:6], maps[6:7], maps[7:10]).save(folder / f"m{index}")
-    broken = folder / "m9"
-    Material.constant(32, 32).save(broken)
-    write_image(broken / "diffuse.png", np.full((8, 8, 3), 0.5, np.float32))  # wrong size: skipped
-    torch.manual_seed(0)
-    model = save_checkpoint(folder.parent / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())
-    return folder, model
-
-
-def test_evaluation_under_environments_writes_its_rows_and_counts_a_corrupt_material(dataset, tmp_path):
-    folder, model = dataset
+def test_evaluation_under_environments_writes_its_rows_and_counts_a_corrupt_material(evaluation_dataset, tmp_path):
+    folder, model = evaluation_dataset
     config = EvaluationConfig(data=str(folder), format="folder", out=str(tmp_path / "out"), model=str(model),
                               baselines=True, environment=("uniform", "studio"), environment_spp=16,
                               environment_resolution=24)

@@ -5,16 +5,11 @@ from __future__ import annotations
 import json
 import math
 
-import numpy as np
 import pytest
 import torch
 
 from mideepbasis.evaluate import (EvaluationConfig, light_error_deg, map_rmse, random_lights_and_views, rerender_rmse,
                                   run_evaluation, ssim, trivial_baseline)
-from mideepbasis.imageio import write_image
-from mideepbasis.material import Material
-from mideepbasis.model.checkpoint import save_checkpoint
-from mideepbasis.model.network import DeepBasisNet, preset
 
 
 def flat(size=16, diffuse=0.5, roughness=0.4, specular=0.04):
@@ -67,25 +62,8 @@ def test_random_lights_are_seeded_and_shared():
     assert (a[0][:, 2] > 0).all() and (a[1][:, 2] > 0).all()
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("materials")
-    generator = torch.Generator().manual_seed(0)
-    for index in range(3):
-        normal = torch.nn.functional.normalize(torch.randn(3, 32, 32, generator=generator) * 0.2
-                                               + torch.tensor([0, 0, 1.0]).view(3, 1, 1), dim=0)
-        Material(normal, torch.rand(3, 32, 32, generator=generator), torch.rand(1, 32, 32, generator=generator),
-                 torch.full((3, 32, 32), 0.04)).save(folder / f"m{index}")
-    broken = folder / "m9"
-    Material.constant(32, 32).save(broken)
-    write_image(broken / "diffuse.png", np.full((8, 8, 3), 0.5, np.float32))  # wrong size: skipped
-    torch.manual_seed(0)
-    model = save_checkpoint(folder.parent / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())
-    return folder, model
-
-
-def test_evaluation_is_seeded_and_skips_a_corrupt_material(dataset, tmp_path):
-    folder, model = dataset
+def test_evaluation_is_seeded_and_skips_a_corrupt_material(evaluation_dataset, tmp_path):
+    folder, model = evaluation_dataset
     summaries = []
     for run in ("a", "b"):
         config = EvaluationConfig(data=str(folder), format="folder", out=str(tmp_path / run), model=str(model),
