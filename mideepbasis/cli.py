@@ -111,6 +111,8 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
+    parser.add_argument("--viewer-screenshot", action="store_true",
+                        help="also write viewer.png: report.html as headless Chromium shows it (needs chromium)")
     parser.add_argument("--truth", type=Path, default=None, metavar="MATERIAL",
                         help="a material folder of the photographed surface: also render it in the environment "
                              "(environment_truth.png, environment_difference.png); one photo only")
@@ -157,6 +159,8 @@ def _run_capture(args) -> int:
             result = capture(photo, model=model, config=config, progress=single)
             save_capture(result, target, exr=args.exr, overwrite=args.overwrite or not single, progress=single,
                          truth=truth)
+            if args.viewer_screenshot:
+                _viewer_screenshot(target)
         except MideepbasisError as error:
             if single:
                 raise
@@ -171,6 +175,15 @@ def _run_capture(args) -> int:
         print(f"captured {len(photos) - len(failures)} of {len(photos)} photos into {args.output}"
               + (f"; {len(failures)} failed" if failures else ""))
     return 1 if failures else 0
+
+
+def _viewer_screenshot(folder: Path) -> None:
+    from .viewer import find_chromium, screenshot
+
+    if find_chromium() is None:
+        warnings.warn("--viewer-screenshot: no Chromium on this machine (Debian: apt-get install chromium); skipped")
+        return
+    screenshot(folder / "report.html", folder / "viewer.png")
 
 
 def _add_demo(subparsers) -> None:

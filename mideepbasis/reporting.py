@@ -164,12 +164,17 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
     notes = "".join(f"<li>{html.escape(note)}</li>" for note in result.notes) or "<li>none</li>"
     images = "".join(f'<figure><img src="{name}.png" width="256"><figcaption>{name}</figcaption></figure>'
                      for name in ("photo", "normal", "diffuse", "roughness", "specular", "rerender", "error", "environment"))
+    from .viewer import viewer_section, viewer_size
+
+    viewer = viewer_section(Path(folder), tuple(result.light_position.tolist()), result.fov,
+                            viewer_size(result.material.width))
     page = f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>mideepbasis capture</title>
 <style>body{{font-family:sans-serif;margin:2em}} figure{{display:inline-block;margin:4px}} th{{text-align:left;padding-right:1em}}</style>
 </head><body>
 <h1>mideepbasis capture</h1>
 <img src="report.png" style="max-width:100%">
+{viewer}
 <h2>Summary</h2><table>{report_table(rows)}</table>
 <h2>Notes</h2><ul>{notes}</ul>
 <h2>Images</h2>{images}
