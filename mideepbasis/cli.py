@@ -57,6 +57,9 @@ def _add_render(subparsers) -> None:
     parser.add_argument("--resolution", type=_positive_int, default=None,
                         help="image size [pixels] (default: the material's for flash, 256 for env)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the path tracer")
+    parser.add_argument("--shape", choices=["plane", "sphere", "cloth"], default="plane",
+                        help="object of --light env: the sample on a table, a ball, or a cloth draped over one")
+    parser.add_argument("--tiles", type=float, default=2.0, help="times the maps repeat across a sphere or cloth")
     parser.set_defaults(run=_run_render)
 
 
@@ -69,7 +72,7 @@ def _run_render(args) -> None:
     material = Material.load(args.material)
     image = render_material(material, light=args.light, fov=args.fov, offset=args.offset, spp=args.spp,
                             convention=args.convention, environment=args.env, resolution=args.resolution,
-                            seed=args.seed)
+                            seed=args.seed, shape=args.shape, tiles=args.tiles)
     exr, png = write_render(image, args.output)
     print(f"wrote {exr} and {png}")
 
@@ -111,6 +114,8 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
+    parser.add_argument("--preview-tiles", type=float, default=2.0,
+                        help="times the maps repeat across the sphere and cloth previews")
     parser.add_argument("--viewer-screenshot", action="store_true",
                         help="also write viewer.png: report.html as headless Chromium shows it (needs chromium)")
     parser.add_argument("--truth", type=Path, default=None, metavar="MATERIAL",
@@ -158,7 +163,7 @@ def _run_capture(args) -> int:
         try:
             result = capture(photo, model=model, config=config, progress=single)
             save_capture(result, target, exr=args.exr, overwrite=args.overwrite or not single, progress=single,
-                         truth=truth)
+                         truth=truth, preview_tiles=args.preview_tiles)
             if args.viewer_screenshot:
                 _viewer_screenshot(target)
         except MideepbasisError as error:

@@ -92,6 +92,10 @@ PREVIEW_FOV_DEG = 40.0
 #: Resolution of the environment preview [pixels].
 PREVIEW_RESOLUTION = 256
 
+#: Samples per pixel of a capture's sphere and cloth previews (fewer than the plane's: they cost
+#: every capture two more path-traced images).
+SHAPE_PREVIEW_SPP = 32
+
 # --- image I/O -----------------------------------------------------------------------------------
 
 #: Largest image accepted on read, against decompression bombs [pixels].

@@ -10,7 +10,8 @@ Files of a capture folder:
 - ``light.json``: the flash offset [patch half-widths] and its angle [deg], the field of view and
   where it came from, the lighting search's passes;
 - ``photo.png`` (the working photo), ``rerender.png`` (the material under the estimated flash),
-  ``error.png`` (|rerender - photo|, x4), ``environment.png`` (path traced in the studio; with a
+  ``error.png`` (|rerender - photo|, x4), ``environment.png`` (path traced in the studio, with
+  ``preview_sphere.png`` and ``preview_cloth.png`` beside it; with a
   true material also ``environment_truth.png`` and ``environment_difference.png``);
 - ``scene.xml``: a Mitsuba scene of the capture that uses the maps above and the ``svbrdf`` plugin
   (``import mideepbasis.render`` registers it before ``mi.load_file``);
@@ -193,15 +194,18 @@ def check_output(out: Path, overwrite: bool) -> None:
 
 def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: bool = False,
                  environment: str = "studio", environment_spp: int = constants.DEFAULT_SPP,
-                 progress: bool = False, truth=None) -> Path:
+                 progress: bool = False, truth=None, preview_tiles: float = 2.0,
+                 shape_spp: int = constants.SHAPE_PREVIEW_SPP) -> Path:
     """Write everything a capture gives (see the module docstring) into ``out``, atomically.
 
     With ``truth`` (a Material the user has maps of), also ``environment_truth.png``: the true
     material path traced in the same scene with the same seed and samples, and
     ``environment_difference.png``: |truth - capture| of the two sRGB images, times 4.
+    ``preview_sphere.png`` and ``preview_cloth.png`` show the material on a ball and on a draped
+    cloth in the same environment, the maps repeated ``preview_tiles`` times across them.
     """
     from .render import render_flash
-    from .render.scenes import preview_scene, render
+    from .render.scenes import preview_scene, render, shape_scene
     from .reporting import capture_report
 
     out = Path(out)
@@ -234,6 +238,10 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
         scene = preview_scene(maps[0], environment=environment, spp=environment_spp, convention=material.convention)
         environment_image = render(scene, progress=progress)
         write_image(staging / "environment.png", environment_image.clip(0, 1), encode_srgb=True)
+        for shape in ("sphere", "cloth"):
+            preview = render(shape_scene(maps[0], shape, environment, tiles=preview_tiles, spp=shape_spp,
+                                         convention=material.convention))
+            write_image(staging / f"preview_{shape}.png", preview.clip(0, 1), encode_srgb=True)
         if truth is not None:
             truth_scene = preview_scene(truth.to_tensor(), environment=environment, spp=environment_spp,
                                         convention=material.convention)

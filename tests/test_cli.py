@@ -118,7 +118,8 @@ def test_console_command_runs_the_demo(tmp_path):
                             capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr
     for name in ["normal.png", "diffuse.png", "roughness.png", "specular.png", "material.json", "light.json",
-                 "rerender.png", "environment.png", "scene.xml", "material.gltf", "report.html", "report.png"]:
+                 "rerender.png", "environment.png", "preview_sphere.png", "preview_cloth.png", "scene.xml",
+                 "material.gltf", "report.html", "report.png"]:
         assert (tmp_path / "demo" / name).is_file(), name
     assert "map RMSE against the ground truth: normal" in result.stdout
     material = Material.load(tmp_path / "demo")

@@ -38,7 +38,7 @@ def _resized(maps: torch.Tensor, resolution: int | None) -> torch.Tensor:
 def render_material(material, light: str = "flash", fov: float = constants.DEFAULT_FOV_DEG,
                     offset: tuple[float, float] = (0.0, 0.0), spp: int | None = None,
                     convention: str | None = None, environment: str = "studio", resolution: int | None = None,
-                    seed: int = 0, progress: bool = True) -> np.ndarray:
+                    seed: int = 0, progress: bool = True, shape: str = "plane", tiles: float = 2.0) -> np.ndarray:
     """Render a Material under the flash or in the environment preview.
 
     Args:
@@ -53,6 +53,8 @@ def render_material(material, light: str = "flash", fov: float = constants.DEFAU
         resolution: output size [pixels]; default the material's width (flash) or 256 (env).
         seed: seed of the path tracer.
         progress: show a progress bar for long path-traced renders.
+        shape: for ``env``: ``plane`` (the sample on a table), ``sphere`` or ``cloth``.
+        tiles: for a sphere or cloth: how many times the maps repeat across it [count].
 
     Returns:
         linear radiance, (H, W, 3) float32.
@@ -62,9 +64,12 @@ def render_material(material, light: str = "flash", fov: float = constants.DEFAU
     convention = convention or material.convention
     maps = material.to_tensor()
     if light == "env":
-        scene = scenes.preview_scene(maps, environment=environment, spp=spp or constants.DEFAULT_SPP,
-                                     resolution=resolution or constants.PREVIEW_RESOLUTION, convention=convention)
+        scene = scenes.shape_scene(maps, shape=shape, environment=environment, tiles=tiles,
+                                   spp=spp or constants.DEFAULT_SPP, resolution=resolution or constants.PREVIEW_RESOLUTION,
+                                   convention=convention)
         return scenes.render(scene, seed=seed, progress=progress)
+    if shape != "plane":
+        raise InputError(f"--shape {shape} needs --light env (the flash capture sees the sample plane)")
     if light != "flash":
         raise InputError(f"unknown light {light!r}: expected 'flash' or 'env'")
     angle = float(geometry.offset_angle_deg(torch.tensor(offset), fov))

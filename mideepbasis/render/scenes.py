@@ -50,12 +50,60 @@ def _as_maps(material) -> torch.Tensor:
     return maps.detach().float().cpu()
 
 
-def set_material(scene: mi.Scene, material) -> None:
-    """Replace the maps of the scene's ``svbrdf`` material (on the shape with id ``sample``) by ``material``'s."""
+def set_material(scene: mi.Scene, material, shape: str = "sample") -> None:
+    """Replace the maps of the ``svbrdf`` material on the shape with id ``shape`` by ``material``'s."""
     params = mi.traverse(scene)
     for name, data in zip(MAP_NAMES, torch.split(_as_maps(material), [3, 3, 1, 3])):
-        params[f"sample.bsdf.{name}.data"] = mi.TensorXf(np.ascontiguousarray(data.permute(1, 2, 0).numpy()))
+        params[f"{shape}.bsdf.{name}.data"] = mi.TensorXf(np.ascontiguousarray(data.permute(1, 2, 0).numpy()))
     params.update()
+
+
+#: Objects of the shape previews (``shape_*.xml``); ``plane`` is the environment preview itself.
+SHAPES = ("plane", "sphere", "cloth")
+
+
+def _environment_part(environment: str) -> dict:
+    """The env_*.xml include and its parameters for an environment name or file."""
+    if environment == SUNSKY:
+        return {"env_part": "env_sunsky.xml"}
+    if environment == UNIFORM:
+        return {"env_part": "env_uniform.xml"}
+    path = scenes_dir() / ENVIRONMENTS[environment] if environment in ENVIRONMENTS else Path(environment)
+    if not path.is_file():
+        raise InputError(f"environment {environment!r} is neither {sorted(ENVIRONMENTS)}, "
+                         f"{SUNSKY!r}, {UNIFORM!r} nor an existing file")
+    return {"env_part": "env_envmap.xml", "envmap": path.resolve()}
+
+
+def shape_scene(material, shape: str = "sphere", environment: str = "studio", tiles: float = 2.0,
+                spp: int = constants.DEFAULT_SPP, resolution: int = constants.PREVIEW_RESOLUTION,
+                convention: str = constants.DEFAULT_CONVENTION, scale: float = 1.0) -> mi.Scene:
+    """The material on an object under an environment, path traced (``preview_shape.xml``).
+
+    Args:
+        material: a Material or a (10, H, W) tensor of stacked maps.
+        shape: ``sphere`` (radius 1) or ``cloth`` (a sheet draped over a ball); ``plane`` gives
+            ``preview_scene``.
+        environment: as for ``preview_scene``.
+        tiles: how many times the maps repeat across the object [count] (around the sphere: twice
+            as many, so that texels stay square).
+        spp, resolution, convention, scale: samples per pixel, image size [pixels], shading
+            convention, radiance scale of the environment.
+    """
+    if shape == "plane":
+        return preview_scene(material, environment, spp, resolution, convention, scale=scale)
+    if shape not in SHAPES:
+        raise InputError(f"unknown preview shape {shape!r}; expected one of {list(SHAPES)}")
+    if not tiles > 0:
+        raise InputError(f"preview tiles must be positive, got {tiles}")
+    camera = {"sphere": dict(camera_y=-4.6, camera_z=2.2, target_z=0.0, preview_fov=32),
+              "cloth": dict(camera_y=-5.0, camera_z=4.2, target_z=0.3, preview_fov=50)}[shape]
+    scene = _load("preview_shape.xml", spp=spp, resolution=resolution, convention=convention, env_scale=scale,
+                  shape_part=f"shape_{shape}.xml", tiles=tiles,
+                  **({"tiles_around": 2 * tiles} if shape == "sphere" else {}), **camera,
+                  **_environment_part(environment))
+    set_material(scene, material, shape="object")
+    return scene
 
 
 def flash_scene(material, offset: tuple[float, float] = (0.0, 0.0), fov: float = constants.DEFAULT_FOV_DEG,
@@ -110,16 +158,10 @@ def preview_scene(material, environment: str = "studio", spp: int = constants.DE
               "camera_z": distance * math.sin(elevation_rad)}
     common = dict(spp=spp, resolution=resolution, preview_fov=fov, convention=convention, env_scale=scale,
                   pixel_format=pixel_format, sampler=sampler, **camera)
-    if environment == SUNSKY:
-        scene = _load("preview_sunsky.xml", **common)
-    elif environment == UNIFORM:
-        scene = _load("preview_uniform.xml", **common)
-    else:
-        path = scenes_dir() / ENVIRONMENTS[environment] if environment in ENVIRONMENTS else Path(environment)
-        if not path.is_file():
-            raise InputError(f"environment {environment!r} is neither {sorted(ENVIRONMENTS)}, "
-                             f"{SUNSKY!r}, {UNIFORM!r} nor an existing file")
-        scene = _load("preview_envmap.xml", envmap=path.resolve(), **common)
+    part = _environment_part(environment)
+    files = {"env_sunsky.xml": "preview_sunsky.xml", "env_uniform.xml": "preview_uniform.xml",
+             "env_envmap.xml": "preview_envmap.xml"}
+    scene = _load(files[part.pop("env_part")], **part, **common)
     set_material(scene, material)
     return scene
 

@@ -62,7 +62,8 @@ def test_unknown_environment_is_a_clear_error(tmp_path):
 def test_scene_files_are_installed_with_the_package():
     folder = scenes.scenes_dir()
     for name in ["flash.xml", "sample.xml", "preview_camera.xml", "preview_envmap.xml", "preview_sunsky.xml",
-                 "envmaps/studio.exr"]:
+                 "preview_uniform.xml", "preview_shape.xml", "shape_sphere.xml", "shape_cloth.xml", "env_envmap.xml",
+                 "env_sunsky.xml", "env_uniform.xml", "meshes/cloth.ply", "envmaps/studio.exr"]:
         assert (folder / name).is_file(), name
 
 
@@ -74,4 +75,35 @@ def test_wheel_contains_the_scenes(tmp_path):
     wheel = next(tmp_path.glob("mideepbasis-*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
     assert {"mideepbasis/scenes/flash.xml", "mideepbasis/scenes/envmaps/studio.exr",
-            "mideepbasis/scenes/textures/flat_normal.exr", "mideepbasis/render/bsdf.py"} <= names
+            "mideepbasis/scenes/textures/flat_normal.exr", "mideepbasis/render/bsdf.py",
+            "mideepbasis/scenes/meshes/cloth.ply", "mideepbasis/scenes/shape_cloth.xml",
+            "mideepbasis/assets/viewer/viewer.js", "mideepbasis/assets/viewer/shading.frag",
+            "mideepbasis/assets/viewer/studio_prefiltered.json"} <= names
+
+
+def test_a_white_lambertian_sphere_under_a_uniform_sky_renders_to_its_known_value():
+    from mideepbasis.render.scenes import render, shape_scene
+
+    from ..helpers import directional_albedo
+
+    maps = torch.zeros(10, 8, 8)
+    maps[2], maps[3:6], maps[6] = 1.0, 1.0, 1.0  # flat, white, rough, specular 0
+    image = render(shape_scene(maps, "sphere", environment="uniform", spp=2048, resolution=33))
+    # The centre pixel sees the ball head-on: a convex object under a uniform sky is lit by all of
+    # its hemisphere, so it reflects the directional albedo at normal incidence.
+    assert image[16, 16].mean() == pytest.approx(directional_albedo(0.0), abs=0.01)
+    assert image[0, 0].mean() == pytest.approx(1.0, abs=1e-6)  # the sky itself behind the ball
+
+
+def test_the_cloth_preview_is_shaded_and_tiles_the_maps():
+    from mideepbasis.data.procedural import GeneratorConfig, generate
+    from mideepbasis.errors import InputError
+    from mideepbasis.render.scenes import render, shape_scene
+
+    maps = generate(3, config=GeneratorConfig(size=32)).to_tensor()
+    images = [render(shape_scene(maps, "cloth", tiles=tiles, spp=8, resolution=48)) for tiles in (1, 4)]
+    for image in images:
+        assert np.isfinite(image).all() and image.std() > 0.01
+    assert np.abs(images[0] - images[1]).mean() > 0.005  # more tiles, another pattern on the same cloth
+    with pytest.raises(InputError, match="unknown preview shape"):
+        shape_scene(maps, "teapot")

@@ -1,0 +1,27 @@
+"""Independent references shared by several tests."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def directional_albedo(view_angle_deg: float, diffuse: float = 1.0, roughness: float = 1.0, specular: float = 0.0,
+                       steps: int = 512) -> float:
+    """The integral of f cos over the hemisphere for a flat, uniform material seen from ``view_angle_deg``
+    off its normal: the radiance it reflects under a uniform sky of unit radiance. Midpoint quadrature
+    of the torch reference BSDF (``render/reference.py``), in float64."""
+    from mideepbasis.render import reference
+
+    view = torch.tensor([0.0, -math.sin(math.radians(view_angle_deg)), math.cos(math.radians(view_angle_deg))],
+                        dtype=torch.float64)
+    theta = (torch.arange(steps, dtype=torch.float64) + 0.5) / steps * (math.pi / 2)
+    phi = (torch.arange(2 * steps, dtype=torch.float64) + 0.5) / (2 * steps) * (2 * math.pi)
+    t, p = torch.meshgrid(theta, phi, indexing="ij")
+    light = torch.stack([torch.sin(t) * torch.cos(p), torch.sin(t) * torch.sin(p), torch.cos(t)])[None]
+    ones = torch.ones(1, 3, *t.shape, dtype=torch.float64)
+    normal = ones * torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(1, 3, 1, 1)
+    value = reference.eval_cosine("physical", normal, view.view(1, 3, 1, 1).expand_as(light), light, ones * diffuse,
+                                  ones[:, :1] * roughness, ones * specular)
+    return float((value[0, 0] * torch.sin(t)).sum() * (math.pi / 2 / steps) * (2 * math.pi / (2 * steps)))
