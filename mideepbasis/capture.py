@@ -113,6 +113,9 @@ class CaptureConfig:
     max_offset_deg: float = constants.MAX_OFFSET_DEG
     """Largest hand-held offset searched [deg] (delta)."""
 
+    tileable: bool = False
+    """Make the captured maps wrap around their edges without a seam (``tiling.make_tileable``)."""
+
 
 @dataclass
 class CaptureResult:
@@ -574,10 +577,15 @@ def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path |
         output.global_bases = refined.to(output.global_bases)
         maps = maps_from_bases(output, refined).cpu()
         timings["refine"] = time.perf_counter() - start
+    if config.tileable:
+        from .tiling import make_tileable
+
+        maps = make_tileable(maps[0], source="photo" if isinstance(image, torch.Tensor) else str(image))[None]
     material = Material.from_tensor(maps[0], convention=model.config.convention,
                                     provenance={"capture": {"offset": list(offset), "fov": fov, "fov_source": source,
                                                             "searched": config.light is None,
-                                                            "refine_steps": config.refine_steps}})
+                                                            "refine_steps": config.refine_steps,
+                                                            "tileable": config.tileable}})
     return CaptureResult(material=material, photo=photo, offset=offset, fov=fov, fov_source=source,
                          searched=config.light is None, search_history=history, refinement_losses=losses,
                          timings=timings, notes=notes, output=output)

@@ -114,6 +114,8 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
+    parser.add_argument("--tileable", action="store_true",
+                        help="make the maps wrap around their edges without a seam (the report shows a 3x3 tiling)")
     parser.add_argument("--preview-tiles", type=float, default=2.0,
                         help="times the maps repeat across the sphere and cloth previews")
     parser.add_argument("--viewer-screenshot", action="store_true",
@@ -156,7 +158,7 @@ def _run_capture(args) -> int:
     model = load_model(args.model)
     config = CaptureConfig(fov=args.fov, light=args.light, refine_steps=args.refine_steps,
                            refine_normals=args.refine_normals, resolution=args.resolution,
-                           network_resolution=args.network_resolution)
+                           network_resolution=args.network_resolution, tileable=args.tileable)
     failures = []
     for photo in tqdm(photos, desc="capturing", unit="photo", disable=single):
         target = args.output if single else args.output / photo.stem

@@ -138,7 +138,17 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
             (size - 8, size - 8), Image.Resampling.BILINEAR)
         sheet.paste(tile, (box[0] + 4, box[1] + 4))
         draw.text((box[0] + 6, box[1] - band + 4), title, fill=(0, 0, 0), font=title_font)
-    light_box, curve_box, text_box = boxes[8], boxes[9], boxes[10]
+    light_box, curve_box, text_box, tiling_box = boxes[8], boxes[9], boxes[10], boxes[11]
+    if result.material.provenance.get("capture", {}).get("tileable"):
+        from .tiling import tiled
+
+        # The diffuse map (sRGB) repeated 3 x 3: a seam would show as a cross through the panel.
+        repeated = tiled(torch.from_numpy(np.ascontiguousarray(tiles[1])).permute(2, 0, 1)).permute(1, 2, 0).numpy()
+        tile = Image.fromarray((np.clip(repeated, 0, 1) * 255 + 0.5).astype(np.uint8)).resize(
+            (size - 8, size - 8), Image.Resampling.BOX)
+        sheet.paste(tile, (tiling_box[0] + 4, tiling_box[1] + 4))
+        draw.text((tiling_box[0] + 6, tiling_box[1] - band + 4), "diffuse, tiled 3 x 3", fill=(0, 0, 0),
+                  font=title_font)
     source = "searched" if result.searched else "given"
     draw.text((light_box[0] + 6, light_box[1] - band + 4), f"flash offset {result.offset_angle_deg:.1f} deg ({source})",
               fill=(0, 0, 0), font=title_font)
