@@ -31,6 +31,16 @@ def _offset(text: str) -> tuple[float, float]:
     return tx, ty
 
 
+def _crop(text: str) -> tuple[int, int, int, int]:
+    try:
+        values = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4:
+        raise argparse.ArgumentTypeError(f"expected X,Y,W,H in pixels (four integers), got {text!r}")
+    return values
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value <= 0:
@@ -87,7 +97,7 @@ def _resolution(text: str) -> int | str:
 
 
 #: Photo suffixes a folder given to ``capture`` is searched for.
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".exr")
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".heic", ".heif", ".exr")
 
 
 def _add_capture(subparsers) -> None:
@@ -114,6 +124,8 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
+    parser.add_argument("--crop", type=_crop, default=None, metavar="X,Y,W,H",
+                        help="the part of the photo that holds the sample [pixels of the photo as shown]")
     parser.add_argument("--tileable", action="store_true",
                         help="make the maps wrap around their edges without a seam (the report shows a 3x3 tiling)")
     parser.add_argument("--preview-tiles", type=float, default=2.0,
@@ -158,7 +170,7 @@ def _run_capture(args) -> int:
     model = load_model(args.model)
     config = CaptureConfig(fov=args.fov, light=args.light, refine_steps=args.refine_steps,
                            refine_normals=args.refine_normals, resolution=args.resolution,
-                           network_resolution=args.network_resolution, tileable=args.tileable)
+                           network_resolution=args.network_resolution, tileable=args.tileable, crop=args.crop)
     failures = []
     for photo in tqdm(photos, desc="capturing", unit="photo", disable=single):
         target = args.output if single else args.output / photo.stem

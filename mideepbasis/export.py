@@ -251,7 +251,13 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
             write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
 
         (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width, material.convention))
-        write_bytes(staging / "material.gltf", _json_bytes(gltf_material(material, staging)))
+        gltf = gltf_material(material, staging)
+        write_bytes(staging / "material.gltf", _json_bytes(gltf))
+        from .interchange import usd_available, write_materialx, write_usd
+
+        write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
+        if usd_available():
+            write_usd(staging)
         capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,
                        rerender_rmse=float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt()))
         if out.exists():

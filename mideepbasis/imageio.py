@@ -31,6 +31,8 @@ from .errors import InputError
 __all__ = ["ImageIOError", "read_image", "write_image", "write_bytes", "srgb_to_linear", "linear_to_srgb",
            "read_focal_length_35mm"]
 
+#: ISO base media (HEIF) brands of still images, after ``ftyp`` at bytes 4 - 8 (iPhones write ``heic``).
+_HEIF_BRANDS = {b"heic", b"heix", b"heim", b"heis", b"hevc", b"hevx", b"mif1", b"msf1"}
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _JPEG_MAGIC = b"\xff\xd8\xff"
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -95,9 +97,10 @@ def linear_to_srgb(x: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
 
 
 def read_image(
-    path: str | os.PathLike, *, decode_srgb: bool = False, max_pixels: int = constants.MAX_IMAGE_PIXELS
+    path: str | os.PathLike, *, decode_srgb: bool = False, max_pixels: int = constants.MAX_IMAGE_PIXELS,
+    reduce: int = 1,
 ) -> np.ndarray:
-    """Read a PNG (8/16-bit), JPEG or OpenEXR image.
+    """Read a PNG (8/16-bit), JPEG, HEIC/HEIF or OpenEXR image.
 
     The format is recognised from the file's content, not its name. Integer data are scaled to
     [0, 1]; EXIF orientation is applied; alpha is dropped with a warning; palette, CMYK and similar
@@ -109,6 +112,9 @@ def read_image(
         decode_srgb: decode PNG/JPEG values with the sRGB EOTF (for colour data: photos, diffuse,
             specular). EXR is linear by definition and returned as stored.
         max_pixels: largest accepted width * height [pixels].
+        reduce: return the image ``reduce`` times smaller on each side (box filter, sizes rounded
+            down), decoded in 8 bits first (JPEGs at a reduced scale already), so that a 48 MP
+            photo never exists as a full-size float array. 8-bit PNG, JPEG and HEIC only.
 
     Returns:
         (H, W, C) float32 image, C = 1 or 3.
@@ -120,22 +126,64 @@ def read_image(
     path = Path(path)
     magic = _read_magic(path)
     if magic.startswith(_EXR_MAGIC):
-        return _read_exr(path, max_pixels)
+        return _reduced(_read_exr(path, max_pixels), reduce)
     if magic.startswith(_PNG_MAGIC):
-        image = _read_png(path, max_pixels)
+        image = _read_png(path, max_pixels, reduce)
     elif magic.startswith(_JPEG_MAGIC):
-        image = _read_pil(path, JpegImagePlugin.JpegImageFile, max_pixels)
+        image = _read_pil(path, JpegImagePlugin.JpegImageFile, max_pixels, reduce)
+    elif magic[4:8] == b"ftyp" and magic[8:12] in _HEIF_BRANDS:
+        image = _read_pil(path, _open_heif, max_pixels, reduce)
     elif not magic:
         raise ImageIOError(f"cannot read '{path}': file is empty")
     else:
-        raise ImageIOError(f"cannot read '{path}': not an image file (expected PNG, JPEG or OpenEXR)")
+        raise ImageIOError(f"cannot read '{path}': not an image file (expected PNG, JPEG, HEIC or OpenEXR)")
     return srgb_to_linear(image) if decode_srgb else image
+
+
+def _open_heif(path: Path) -> Image.Image:
+    """A HEIC/HEIF image through pillow-heif, which applies the stored rotation while decoding
+    (and resets the EXIF orientation to 1, so it is not applied twice)."""
+    import pillow_heif
+
+    pillow_heif.register_heif_opener()
+    return Image.open(path, formats=["HEIF"])
+
+
+def _reduced(image: np.ndarray, reduce: int) -> np.ndarray:
+    """Block means of ``reduce`` x ``reduce`` pixels of an (H, W, C) array (sizes rounded down)."""
+    if reduce <= 1:
+        return image
+    height, width = (image.shape[0] // reduce) * reduce, (image.shape[1] // reduce) * reduce
+    blocks = image[:height, :width].reshape(height // reduce, reduce, width // reduce, reduce, -1)
+    return blocks.mean(axis=(1, 3), dtype=np.float32)
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image as shown (EXIF orientation applied), from its header only."""
+    path = Path(path)
+    magic = _read_magic(path)
+    heif = magic[4:8] == b"ftyp" and magic[8:12] in _HEIF_BRANDS
+    if not (heif or magic.startswith(_PNG_MAGIC) or magic.startswith(_JPEG_MAGIC)):
+        # EXR photos are rare and small; anything else gets read_image's own one-line error.
+        return tuple(read_image(path).shape[1::-1])
+    opener = _open_heif if heif else (JpegImagePlugin.JpegImageFile if magic.startswith(_JPEG_MAGIC)
+                                      else PngImagePlugin.PngImageFile)  # header only, no bomb check of Pillow's
+    try:
+        with opener(path) as img:
+            width, height = img.size
+            _check_pixels(path, width, height, constants.MAX_IMAGE_PIXELS)
+            orientation = _exif_orientation(img.getexif)
+    except ImageIOError:
+        raise
+    except (OSError, SyntaxError, EOFError, struct.error, ValueError, Image.DecompressionBombError) as exc:
+        raise _decode_error(path, exc) from exc
+    return (height, width) if orientation in (5, 6, 7, 8) else (width, height)
 
 
 def _read_magic(path: Path) -> bytes:
     try:
         with open(path, "rb") as f:
-            return f.read(8)
+            return f.read(12)
     except FileNotFoundError:
         raise ImageIOError(f"cannot read '{path}': no such file") from None
     except IsADirectoryError:
@@ -158,7 +206,7 @@ def _decode_error(path: Path, exc: BaseException) -> ImageIOError:
     return ImageIOError(f"cannot read '{path}': corrupt image data ({message})")
 
 
-def _read_png(path: Path, max_pixels: int) -> np.ndarray:
+def _read_png(path: Path, max_pixels: int, reduce: int = 1) -> np.ndarray:
     with open(path, "rb") as f:
         header = f.read(26)
     # IHDR is always the first chunk: length (8:12), b"IHDR" (12:16), width, height, depth, type.
@@ -166,7 +214,7 @@ def _read_png(path: Path, max_pixels: int) -> np.ndarray:
         raise ImageIOError(f"cannot read '{path}': file is truncated or not a valid PNG")
     width, height, depth, colour_type = struct.unpack(">IIBB", header[16:26])
     if depth != 16:
-        return _read_pil(path, PngImagePlugin.PngImageFile, max_pixels)
+        return _read_pil(path, PngImagePlugin.PngImageFile, max_pixels, reduce)
 
     # Pillow reads 16-bit RGB(A) PNGs as 8-bit, so OpenCV decodes them. Pillow still checks the
     # chunk structure and CRCs first (OpenCV returns None or a partial image on broken data) and
@@ -189,16 +237,21 @@ def _read_png(path: Path, max_pixels: int) -> np.ndarray:
     if has_alpha:
         _warn_alpha(path)
     image = data.astype(np.float32) / 65535.0
-    return _orient(image, orientation)
+    return _reduced(_orient(image, orientation), reduce)
 
 
-def _read_pil(path: Path, opener: Callable[[Path], Image.Image], max_pixels: int) -> np.ndarray:
+def _read_pil(path: Path, opener: Callable[[Path], Image.Image], max_pixels: int, reduce: int = 1) -> np.ndarray:
     # The format plugins open lazily (header only) and, unlike Image.open, do not apply Pillow's
     # own decompression-bomb limit, so `max_pixels` is the one limit that applies.
     try:
         with opener(path) as img:
             _check_pixels(path, *img.size, max_pixels)
+            target = (max(1, img.width // reduce), max(1, img.height // reduce))
+            if reduce > 1 and img.format == "JPEG":
+                img.draft(img.mode, target)  # the decoder itself skips to 1/2, 1/4 or 1/8 scale
             img.load()
+            if img.size != target:
+                img = img.resize(target, Image.Resampling.BOX, reducing_gap=2.0)
             orientation = _exif_orientation(img.getexif)
             has_alpha = "A" in img.mode or "transparency" in img.info
             if img.mode in ("P", "PA"):

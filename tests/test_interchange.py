@@ -1,0 +1,89 @@
+"""MaterialX and USD exports: they validate, and read back they name the glTF's textures and values,
+each texture in its right colour space."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from mideepbasis.export import gltf_material
+from mideepbasis.interchange import usd_available, write_materialx, write_usd
+from mideepbasis.material import Material
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A material folder with its glTF, MaterialX and (where usd-core is installed) USD exports."""
+    folder = tmp_path_factory.mktemp("exported")
+    generator = torch.Generator().manual_seed(0)
+    size = 16
+    normal = torch.nn.functional.normalize(torch.randn(3, size, size, generator=generator) * 0.2
+                                           + torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1), dim=0)
+    specular = torch.rand(3, size, size, generator=generator) * 0.08  # coloured, above the 0.04 of dielectrics
+    material = Material(normal, torch.rand(3, size, size, generator=generator),
+                        torch.rand(1, size, size, generator=generator), specular)
+    material.save(folder)
+    gltf = gltf_material(material, folder)
+    (folder / "material.gltf").write_text(json.dumps(gltf))
+    write_materialx(folder, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
+    if usd_available():
+        write_usd(folder)
+    return folder, gltf
+
+
+def test_materialx_validates_and_carries_the_gltf(exported):
+    import MaterialX as mx
+
+    folder, gltf = exported
+    document = mx.createDocument()
+    mx.readFromXmlFile(document, str(folder / "material.mtlx"))
+    library = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), library)
+    document.importLibrary(library)
+    valid, message = document.validate()
+    assert valid, message
+    files = {}
+    for node in document.getNodeGraphs()[0].getNodes("image"):
+        file_input = node.getInput("file")
+        files[file_input.getValueString()] = file_input.getColorSpace()
+    assert set(files) == {image["uri"] for image in gltf["images"]}
+    assert files == {"base_color.png": "srgb_texture", "specular_color.png": "srgb_texture",
+                     "metallic_roughness.png": "", "normal.png": ""}  # colour data sRGB, the rest raw
+    shader = document.getNodes("standard_surface")[0]
+    factor = gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0]
+    # MaterialX writes six significant digits; a factor above 1 keeps the coloured F0 above 0.04.
+    assert shader.getInputValue("specular") == pytest.approx(factor, rel=1e-5) and factor > 1
+    assert shader.getInputValue("specular_IOR") == pytest.approx(1.5)  # 0.04 x specular x colour, as glTF
+    extracts = {node.getName(): node.getInputValue("index") for node in document.getNodeGraphs()[0].getNodes("extract")}
+    assert extracts == {"roughness_channel": 1, "metalness_channel": 2}  # glTF packs roughness in G, metallic in B
+
+
+@pytest.mark.skipif(not usd_available(), reason="usd-core is not installed (pip install 'mideepbasis[usd]')")
+def test_usd_validates_and_carries_the_gltf(exported):
+    from pxr import Usd, UsdShade, UsdValidation
+
+    folder, gltf = exported
+    stage = Usd.Stage.Open(str(folder / "material.usda"))
+    # USD's own validators (usdchecker's): every one that is registered.
+    registry = UsdValidation.ValidationRegistry()
+    errors = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators()).Validate(stage)
+    assert not errors, [error.GetMessage() for error in errors]
+    textures = {}
+    surface = None
+    for prim in stage.Traverse():
+        shader = UsdShade.Shader(prim)
+        if not shader:
+            continue
+        identifier = shader.GetIdAttr().Get()
+        if identifier == "UsdUVTexture":
+            textures[shader.GetInput("file").Get().path] = shader.GetInput("sourceColorSpace").Get()
+        elif identifier == "UsdPreviewSurface":
+            surface = shader
+    assert set(textures) <= {image["uri"] for image in gltf["images"]}
+    assert textures == {"base_color.png": "sRGB", "metallic_roughness.png": "raw", "normal.png": "raw"}
+    sources = {name: surface.GetInput(name).GetConnectedSource()[1] for name in ("roughness", "metallic", "diffuseColor")}
+    assert sources == {"roughness": "g", "metallic": "b", "diffuseColor": "rgb"}
+    mesh = stage.GetPrimAtPath("/sample/quad")
+    assert UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()[0].GetPath().name == "captured_material"
