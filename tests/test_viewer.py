@@ -118,3 +118,17 @@ def test_without_webgl_the_page_says_so_and_keeps_the_static_report(captured):
     dom = headless_dom(captured / "report.html", flags=("--disable-3d-apis",))
     assert "WebGL 2 is not available in this browser" in dom
     assert '<img src="report.png"' in dom
+
+
+def test_capture_keeps_a_screenshot_of_the_viewer(tmp_path):
+    from mideepbasis import cli
+    from mideepbasis.render.api import example_capture_dir
+
+    out = tmp_path / "out"
+    assert cli.main(["capture", str(example_capture_dir() / "photo.jpg"), "-o", str(out), "--refine-steps", "0",
+                     "--viewer-screenshot"]) == 0
+    from PIL import Image
+
+    with Image.open(out / "viewer.png") as shot:
+        pixels = np.asarray(shot.convert("RGB")).astype(float)
+    assert shot.size[0] >= 800 and pixels.std() > 10  # a page with pictures, not a blank one
