@@ -312,8 +312,29 @@ class EvaluationConfig:
     """Size of the environment renders [pixels] (None: the protocol's)."""
 
 
-def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch.Tensor, int]:
-    """(names, maps (N, 10, H, W), number skipped) of a dataset; every material at one size."""
+@dataclass
+class EvaluationSet:
+    """The materials of an evaluation, every one at one size.
+
+    Attributes:
+        names: one per material.
+        maps: (N, 10, H, W) the maps to render (normals a dataset stored pointing into the
+            surface repaired: z raised to ``material.REPAIRED_NORMAL_Z``, renormalised).
+        stored: (N, 10, H, W) the maps as stored, for map metrics (equal to ``maps`` but for the
+            repaired normals).
+        repaired_pixels: per material, how many normals were repaired.
+        skipped: unreadable materials.
+    """
+
+    names: list[str]
+    maps: torch.Tensor
+    stored: torch.Tensor
+    repaired_pixels: list[int]
+    skipped: int
+
+
+def load_evaluation_materials(data: str | Path, format: str) -> EvaluationSet:
+    """The readable materials of a dataset (``EvaluationSet``); only unreadable files are skipped."""
     from .data.datasets import DeschaintreDataset, MaterialFolderDataset, PBRFolderDataset
 
     data = Path(data)
@@ -327,20 +348,33 @@ def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch
         from .errors import InputError
 
         raise InputError(f"unknown dataset format {format!r}: expected deschaintre5, deschaintre4 or folder")
-    names, maps = [], []
+    names, maps, stored, repaired = [], [], [], []
     for source in reader.sources:
         material = reader.try_load(source)
         if material is None:
             continue
         names.append(Path(str(source)).stem)
-        maps.append(material.to_tensor())
+        tensor = material.to_tensor()
+        maps.append(tensor)
+        if material.stored_normal is None:
+            stored.append(tensor)
+        else:
+            stored.append(torch.cat([material.stored_normal.detach().float(), tensor[3:]]))
+        repaired.append(int(material.provenance.get("repaired_normal_pixels", 0)))
     if not maps:
         from .errors import InputError
 
         raise InputError(f"{data}: no readable materials ({reader.skipped} skipped)")
     size = min(m.shape[-1] for m in maps)
     maps = [m if m.shape[-1] == size else _resize_maps(m, size) for m in maps]
-    return names, torch.stack(maps), reader.skipped
+    stored = [m if m.shape[-1] == size else _resize_maps(m, size) for m in stored]
+    return EvaluationSet(names, torch.stack(maps), torch.stack(stored), repaired, reader.skipped)
+
+
+def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch.Tensor, int]:
+    """(names, maps to render (N, 10, H, W), number skipped): ``load_evaluation_materials`` in short."""
+    materials = load_evaluation_materials(data, format)
+    return materials.names, materials.maps, materials.skipped
 
 
 def _resize_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
@@ -357,9 +391,11 @@ def evaluation_offsets(count: int, seed: int, fov: float) -> torch.Tensor:
 
 
 def score(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, views: torch.Tensor, convention: str,
-          lpips: LPIPS | None = None, cross_check: bool = False) -> dict[str, torch.Tensor]:
-    """Per-material metrics of predictions (N, 10, H, W) against the truth."""
-    result = {f"maps_{k}": v for k, v in map_rmse(predicted, truth).items()}
+          lpips: LPIPS | None = None, cross_check: bool = False, stored: torch.Tensor | None = None
+          ) -> dict[str, torch.Tensor]:
+    """Per-material metrics of predictions (N, 10, H, W) against the truth: map RMSE against the
+    maps as ``stored`` (default: ``truth``), re-renderings against ``truth``."""
+    result = {f"maps_{k}": v for k, v in map_rmse(predicted, truth if stored is None else stored).items()}
     rmse, flips, ssims, lpipses, torch_rmse = [], [], [], [], []
     for index in range(len(truth)):
         a = rerender(predicted[index:index + 1], lights, views, convention)[0]
@@ -441,11 +477,14 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     started = time.perf_counter()
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    names, truth, skipped = load_evaluation_set(config.data, config.format)
+    materials = load_evaluation_materials(config.data, config.format)
+    names, truth, stored, skipped = materials.names, materials.maps, materials.stored, materials.skipped
+    repaired = materials.repaired_pixels
     if config.limit:
-        names, truth = names[:config.limit], truth[:config.limit]
+        names, truth, stored, repaired = names[:config.limit], truth[:config.limit], stored[:config.limit], repaired[:config.limit]
     if config.resolution and config.resolution != truth.shape[-1]:
         truth = torch.stack([_resize_maps(m, config.resolution) for m in truth])
+        stored = torch.stack([_resize_maps(m, config.resolution) for m in stored])
     model = load_model(config.model)
     # Load the direct baseline now, so a wrong path fails before minutes of predictions.
     direct = load_model(config.direct_model) if config.baselines and config.direct_model else None
@@ -475,24 +514,32 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
                              "light_error_deg": light_error}
     main_row = refined_row if config.refine_steps else unrefined_row
     for row, predicted in predictions.items():
-        per_material[row] = score(predicted, truth, lights, views, convention, lpips, cross_check=row == main_row)
+        per_material[row] = score(predicted, truth, lights, views, convention, lpips, cross_check=row == main_row,
+                                  stored=stored)
     if config.baselines:
         predictions["trivial"] = trivial_baseline(truth).expand_as(truth)
-        per_material["trivial"] = score(predictions["trivial"], truth, lights, views, convention, lpips)
+        per_material["trivial"] = score(predictions["trivial"], truth, lights, views, convention, lpips, stored=stored)
         rows["trivial"] = {"seconds": 0.0}
         if direct is not None:
             start = time.perf_counter()
             predictions["direct (no bases)"], _, _ = _predict_all(direct, truth, offsets, config.fov, "known", 0, progress,
                                                                   "direct", network_resolution=config.network_resolution)
             rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
-            per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention, lpips)
+            per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention,
+                                                      lpips, stored=stored)
         else:
             notes.append("the direct per-pixel baseline needs --direct-model (a checkpoint trained with --no-bases)")
     for row, metrics in per_material.items():
         rows[row].update({key: float(value.mean()) for key, value in metrics.items()})
 
     main = rows[main_row]
-    summary = {"n_materials": len(truth), "skipped": skipped, "data": str(config.data), "format": config.format,
+    if any(repaired):
+        notes.append(f"{sum(1 for r in repaired if r)} materials store {sum(repaired)} normals pointing into the "
+                     "surface: repaired for rendering, compared as stored")
+    summary = {"n_materials": len(truth), "skipped": skipped,
+               "repaired_normal_pixels": int(sum(repaired)),
+               "materials_with_repaired_normals": int(sum(1 for r in repaired if r)),
+               "data": str(config.data), "format": config.format,
                "resolution": truth.shape[-1],
                "model": config.model or "shipped", "convention": convention, "light": config.light,
                "refine_steps": config.refine_steps, "refine_normals": config.refine_normals,

@@ -34,6 +34,9 @@ _CHANNELS = {"normal": 3, "diffuse": 3, "roughness": 1, "specular": 3}
 _FORMAT_NAME = "mideepbasis-material"
 _FORMAT_VERSION = 1
 #: save() format -> (file suffix, bit depth).
+#: z given to normals that point into the surface when a published strip is repaired for rendering.
+REPAIRED_NORMAL_Z = 1e-3
+
 _SAVE_FORMATS = {"png": ("png", 8), "png16": ("png", 16), "exr": ("exr", 32)}
 #: Encodings a material folder may declare per map; the first is the DESIGN default per format.
 _DEFAULT_ENCODING = {
@@ -77,6 +80,8 @@ class Material:
         convention: shading convention the maps are meant for (``constants.CONVENTIONS``).
         provenance: JSON-serialisable record of where the maps came from and how they were encoded.
         source: name used in error messages (a file or folder, or "material").
+        stored_normal: (3, H, W) the normals as a dataset stored them where they had to be
+            repaired for rendering (``from_deschaintre``), else None; for metrics only.
 
     Raises:
         MaterialError: one line ``"<source>: <problem>"``.
@@ -89,6 +94,7 @@ class Material:
     convention: str = constants.DEFAULT_CONVENTION
     provenance: dict = field(default_factory=dict)
     source: str = "material"
+    stored_normal: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         src = self.source
@@ -311,7 +317,8 @@ class Material:
 
     @classmethod
     def from_deschaintre(
-        cls, path: str | os.PathLike, *, return_photo: bool = False, convention: str = "deepbasis"
+        cls, path: str | os.PathLike, *, return_photo: bool = False, convention: str = "deepbasis",
+        repair_normals: bool = True,
     ) -> Material | tuple[Material, torch.Tensor | None]:
         """Read a strip of the Deschaintre et al. 2018 dataset.
 
@@ -327,6 +334,12 @@ class Material:
             return_photo: also return the flash panel.
             convention: the shading convention the maps were made for; the default is that of the
                 reference implementations whose renderer produced the dataset.
+            repair_normals: published strips hold some normals that point into the surface
+                (z < 0), which no renderer can shade. With True their z is raised to
+                ``REPAIRED_NORMAL_Z`` and they are renormalised; the count is in
+                ``provenance["repaired_normal_pixels"]`` and the normals as stored (unit length,
+                z < 0 kept) in ``material.stored_normal``, for metrics in the stored encoding.
+                With False such a strip is refused.
 
         Returns:
             The material, or (material, photo) with photo (3, H, W) in [0, 1] as stored (sRGB
@@ -350,15 +363,27 @@ class Material:
         panels = [strip[:, crop : size - crop, i * size + crop : (i + 1) * size - crop] for i in range(count)]
         photo = panels.pop(0) if count == 5 else None
         normal, diffuse, roughness, specular = panels
+        normal = _decode(normal, "unsigned-opengl")
+        inward = normal[2] < -constants.UNIT_NORMAL_TOLERANCE
+        stored_normal = None
+        if repair_normals and bool(inward.any()):
+            stored_normal = normal / _length(normal, keepdim=True).clamp(min=1e-12)
+            normal = normal.clone()
+            normal[2] = torch.where(inward, torch.full_like(normal[2], REPAIRED_NORMAL_Z), normal[2])
+            normal = normal / _length(normal, keepdim=True)
+        provenance = {"source": path.name, "format": f"deschaintre{count}", "encoding": "stored-as-is"}
+        if stored_normal is not None:
+            provenance["repaired_normal_pixels"] = int(inward.sum())
         material = cls(
-            normal=_decode(normal, "unsigned-opengl"),
+            normal=normal,
             diffuse=diffuse.clone(),
             roughness=roughness.mean(dim=0, keepdim=True),
             specular=specular.clone(),
             convention=convention,
-            provenance={"source": path.name, "format": f"deschaintre{count}", "encoding": "stored-as-is"},
+            provenance=provenance,
             source=src,
         )
+        material.stored_normal = stored_normal
         if return_photo:
             return material, None if photo is None else photo.clone()
         return material

@@ -113,3 +113,56 @@ def test_lpips_plumbing_with_a_seeded_backbone_of_alexnets_shapes(tmp_path):
     # The distance is linear in the per-layer weights: doubling them doubles it.
     torch.save({k: 2 * v for k, v in lins.items()}, linear)
     assert torch.allclose(LPIPS(alexnet, linear)(a, b), 2 * forward, rtol=1e-5)
+
+
+def test_strips_with_inward_normals_are_repaired_for_rendering_and_compared_as_stored(tmp_path):
+    from mideepbasis.evaluate import load_evaluation_materials
+    from mideepbasis.imageio import write_image
+    from mideepbasis.material import REPAIRED_NORMAL_Z, Material, MaterialError
+
+    generator = torch.Generator().manual_seed(0)
+    size = 512
+    panels = []
+    normal = torch.zeros(3, size, size)
+    normal[2] = 1.0
+    normal[:, :4, :5] = torch.tensor([0.6, 0.0, -0.8]).view(3, 1, 1)  # 20 pixels point into the surface
+    panels.append((normal + 1) / 2)
+    panels += [torch.rand(3, size, size, generator=generator), torch.full((3, size, size), 0.5),
+               torch.full((3, size, size), 0.04)]
+    strip = torch.cat(panels, dim=2).permute(1, 2, 0).numpy()
+    folder = tmp_path / "strips"
+    folder.mkdir()
+    write_image(folder / "inward.png", strip)
+    write_image(folder / "clean.png", torch.cat([(torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, size, size) + 1) / 2,
+                                                 *panels[1:]], dim=2).permute(1, 2, 0).numpy())
+    with pytest.raises(MaterialError, match="normals point into the surface"):
+        Material.from_deschaintre(folder / "inward.png", repair_normals=False)
+    materials = load_evaluation_materials(folder, "deschaintre4")
+    assert materials.skipped == 0 and materials.names == ["clean", "inward"]
+    assert materials.repaired_pixels == [0, 20]
+    repaired, stored = materials.maps[1, :3, :4, :5], materials.stored[1, :3, :4, :5]
+    assert (stored[2] < -0.7).all()  # compared as stored (8-bit quantised, unit length)
+    assert torch.allclose(repaired[2], torch.full((4, 5), REPAIRED_NORMAL_Z / (REPAIRED_NORMAL_Z**2 + 0.6**2) ** 0.5),
+                          atol=2e-3)  # rendered above the surface
+    assert torch.equal(materials.maps[0], materials.stored[0])  # nothing to repair: one and the same
+    assert torch.equal(materials.maps[1, 3:], materials.stored[1, 3:])
+
+
+def test_evaluation_counts_the_repaired_normals(tmp_path, evaluation_dataset):
+    from mideepbasis.imageio import write_image
+
+    _, model = evaluation_dataset
+    size = 512
+    normal = torch.zeros(3, size, size)
+    normal[2] = 1.0
+    normal[:, :8, :8] = torch.tensor([0.0, 0.6, -0.8]).view(3, 1, 1)
+    rest = [torch.full((3, size, size), 0.3), torch.full((3, size, size), 0.5), torch.full((3, size, size), 0.04)]
+    folder = tmp_path / "strips"
+    folder.mkdir()
+    write_image(folder / "inward.png", torch.cat([(normal + 1) / 2, *rest], dim=2).permute(1, 2, 0).numpy())
+    summary = run_evaluation(EvaluationConfig(data=str(folder), format="deschaintre4", out=str(tmp_path / "out"),
+                                              model=str(model), resolution=64), progress=False)
+    assert summary["n_materials"] == 1 and summary["skipped"] == 0
+    assert summary["repaired_normal_pixels"] == 64 and summary["materials_with_repaired_normals"] == 1
+    assert any("pointing into the surface" in note for note in summary["notes"])
+    assert math.isfinite(summary["render_rmse"])
