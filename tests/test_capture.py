@@ -43,8 +43,19 @@ class OracleModel(DeepBasisNet):
         deviations = (signed - global_bases.view(1, 10, 1, 1)).view(1, 1, 10, *signed.shape[-2:])
         weights = torch.ones(1, 1, *signed.shape[-2:])
         output = DeepBasisOutput(maps=None, weights=weights, global_bases=global_bases, deviations=deviations)
-        output.maps = maps_from_bases(output, global_bases)
+        output.maps = maps_by_hand(global_bases, deviations)
         return output
+
+
+def maps_by_hand(global_bases: torch.Tensor, deviations: torch.Tensor) -> torch.Tensor:
+    """The maps of one basis with weight 1, written out here (not through the package's blend):
+    signed basis = global + deviation, its normal part unit length with z >= 0, the other seven
+    channels mapped from [-1, 1] to [0, 1]."""
+    signed = global_bases.view(1, 10, 1, 1) + deviations[:, 0]
+    normal = signed[:, :3] / signed[:, :3].norm(dim=1, keepdim=True)
+    normal = torch.cat([normal[:, :2], normal[:, 2:].clamp(min=0.0)], dim=1)
+    normal = normal / normal.norm(dim=1, keepdim=True)
+    return torch.cat([normal, (signed[:, 3:].clamp(-1.0, 1.0) * 0.5 + 0.5).clamp(0.0, 1.0)], dim=1)
 
 
 def material(seed=3, size=64):
@@ -93,10 +104,13 @@ def test_refinement_lowers_the_error_and_moves_only_the_global_bases():
     weights, deviations = output.weights.clone(), output.deviations.clone()
 
     def error(global_bases):
-        maps = maps_from_bases(output, global_bases)
+        maps = maps_by_hand(global_bases, output.deviations)
         rendered = render_flash(maps, lights.view(1, 1, 3))[:, 0].clamp(0, 1)
         return float((rendered - photos).abs().mean())
 
+    # The package's rebuild of the maps from the bases agrees with the one written out here.
+    assert torch.allclose(maps_from_bases(output, output.global_bases), maps_by_hand(output.global_bases, output.deviations),
+                          atol=1e-6)
     before = error(output.global_bases)
     refined, losses = refine_global_bases(output, photos[0], lights[0], 45.0, "physical", steps=150, resolution=32, lr=0.02)
     assert error(refined) < 0.5 * before

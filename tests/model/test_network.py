@@ -44,7 +44,9 @@ def test_blend_is_a_convex_combination_of_the_bases():
     assert weights.min() >= 0
     assert torch.allclose(weights.sum(1), torch.ones_like(weights[:, 0]), atol=1e-5)
     signed = out.extras["signed_maps"]
-    assert torch.allclose(signed, blend(weights, out.bases), atol=1e-6)
+    # The blend written out independently: a sum over the bases' axis of weight times basis.
+    reference = (weights.double().unsqueeze(2) * out.bases.double()).sum(dim=1)
+    assert torch.allclose(signed.double(), reference, atol=1e-6)
     # Every blended parameter lies between the smallest and the largest basis value at its pixel.
     low, high = out.bases.min(dim=1).values, out.bases.max(dim=1).values
     assert (signed >= low - 1e-5).all() and (signed <= high + 1e-5).all()
