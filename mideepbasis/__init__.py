@@ -2,7 +2,7 @@
 
 Public API::
 
-    from mideepbasis import Material, load_model, render_material
+    from mideepbasis import Material, capture, load_model, render_material
     material = Material.load("my_material/")
     image = render_material(material, light="env")          # (H, W, 3) linear, path traced
     model = load_model()                                    # the shipped DeepBasisNet
@@ -26,7 +26,7 @@ from .material import Material, MaterialError  # noqa: E402
 __version__ = "0.1.0"
 
 __all__ = ["Material", "MaterialError", "ImageIOError", "InputError", "MideepbasisError", "read_image",
-           "write_image", "render_material", "render_flash", "load_model", "__version__"]
+           "write_image", "render_material", "render_flash", "load_model", "capture", "__version__"]
 
 # Loaded on first use: these import drjit and Mitsuba, which take a moment to start.
 _RENDERING = {"render_material": "mideepbasis.render.api", "render_flash": "mideepbasis.render",
@@ -34,6 +34,10 @@ _RENDERING = {"render_material": "mideepbasis.render.api", "render_flash": "mide
 
 
 def __getattr__(name):
+    if name == "capture":  # the submodule, callable as its capture function (see capture.py)
+        import importlib
+
+        return importlib.import_module("mideepbasis.capture")
     if name in _RENDERING:
         import importlib
 

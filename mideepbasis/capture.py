@@ -29,6 +29,7 @@ Shapes: photos (B, 3, H, W) linear in [0, 1]; lights (B, 3) flash positions and 
 from __future__ import annotations
 
 import math
+import sys
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -621,3 +622,15 @@ def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path |
     return CaptureResult(material=material, photo=photo, offset=offset, fov=fov, fov_source=source,
                          searched=config.light is None, search_history=history, refinement_losses=losses,
                          timings=timings, notes=notes, output=output)
+
+
+class _CallableModule(type(sys.modules[__name__])):
+    """This module, callable as its ``capture`` function: DESIGN section 4 promises
+    ``from mideepbasis import capture; capture("photo.jpg")``, and once imported the submodule
+    ``mideepbasis.capture`` is what that name is bound to."""
+
+    def __call__(self, *args, **kwargs) -> CaptureResult:
+        return capture(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -336,3 +336,18 @@ def test_a_capture_imports_neither_dynamo_nor_plotting_libraries(tmp_path):
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_the_public_capture_is_callable_as_design_promises(tmp_path):
+    # DESIGN section 4: `from mideepbasis import capture; capture("photo.jpg")`, in a fresh process.
+    import subprocess
+    import sys
+
+    script = ("from mideepbasis import capture\n"
+              "from mideepbasis.render.api import example_capture_dir\n"
+              "result = capture(example_capture_dir() / 'photo.jpg', refine_steps=0)\n"
+              "from mideepbasis.capture import CaptureConfig, capture as function\n"
+              "print(type(result).__name__, result.material.width, function.__name__)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split() == ["CaptureResult", "256", "capture"]
