@@ -1,0 +1,46 @@
+"""Exports: the glTF material carries our maps through the metallic-roughness conversion, output
+folders are never replaced unasked."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from mideepbasis.errors import InputError
+from mideepbasis.export import check_output, gltf_material
+from mideepbasis.imageio import read_image
+from mideepbasis.material import Material
+
+
+def test_gltf_textures_hold_the_metallic_roughness_conversion(tmp_path):
+    generator = torch.Generator().manual_seed(2)
+    size = 8
+    material = Material(torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, size, size).clone(),
+                        torch.rand(3, size, size, generator=generator) * 0.8,
+                        torch.rand(1, size, size, generator=generator), torch.full((3, size, size), 0.05))
+    document = gltf_material(material, tmp_path)
+    json.dumps(document)  # JSON-serialisable as it is
+    pbr = material.to_pbr()
+    base = read_image(tmp_path / "base_color.png", decode_srgb=True)
+    packed = read_image(tmp_path / "metallic_roughness.png")
+    assert torch.allclose(torch.from_numpy(base).permute(2, 0, 1), pbr["base_color"], atol=2 / 255)
+    assert torch.allclose(torch.from_numpy(packed[..., 1]), pbr["roughness"][0], atol=1 / 255)  # G: roughness
+    assert torch.allclose(torch.from_numpy(packed[..., 2]), pbr["metallic"][0], atol=1 / 255)  # B: metallic
+    # KHR_materials_specular: F0 = 0.04 x factor x colour must give back our specular 0.05 (dielectric here).
+    factor = document["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0]
+    colour = read_image(tmp_path / "specular_color.png", decode_srgb=True)
+    assert 0.04 * factor * colour.mean() == pytest.approx(0.05, rel=0.02)
+
+
+def test_an_occupied_output_folder_is_refused(tmp_path):
+    (tmp_path / "out").mkdir()
+    check_output(tmp_path / "out", overwrite=False)  # empty: fine
+    (tmp_path / "out" / "mine.txt").write_text("keep")
+    with pytest.raises(InputError, match="exists and is not empty"):
+        check_output(tmp_path / "out", overwrite=False)
+    check_output(tmp_path / "out", overwrite=True)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="is not a folder"):
+        check_output(tmp_path / "file", overwrite=True)
