@@ -5,7 +5,8 @@
 Every training stage that led to (or continues from) the shipped weights keeps its validation
 records in ``benchmarks/results/training/`` (one JSONL file per stage, listed in order in
 ``stages.json`` with the materials seen before it). ``--add`` appends a stage, copying the
-validation records of a run's log there. The curve plots held-out validation map RMSE (64 fixed
+validation records of a run's log there; adding a label again (a resumed run, further on)
+refreshes that stage in place. The curve plots held-out validation map RMSE (64 fixed
 procedural materials at 128 px, in-memory encoding: normals as unit vectors) against the number
 of training materials seen, beside the flat-normal RMSE.
 """
@@ -27,18 +28,27 @@ def load_stages() -> list[dict]:
     return json.loads(manifest.read_text()) if manifest.exists() else []
 
 
-def add_stage(label: str, log: Path, batch: int, first_start: int = 0) -> None:
+def add_stage(label: str, log: Path, batch: int, first_start: int = 0, start: int | None = None) -> None:
     """Append the validation records of ``log`` (a run of ``batch`` materials per step) as a stage
-    after the existing ones; the first stage starts at ``first_start`` materials seen."""
+    after the existing ones; it starts where the last stage ended (the first at ``first_start``)
+    or at ``start`` materials seen (a stage that continues from an earlier step's weights)."""
     stages = load_stages()
     records = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
-    start = stages[-1]["start_materials"] + stages[-1]["steps"] * stages[-1]["batch"] if stages else first_start
+    previous = next((i for i, stage in enumerate(stages) if stage["label"] == label), None)
+    if previous is not None:  # the same run, further on (a resumed run): its stage is refreshed in place
+        start = stages[previous]["start_materials"] if start is None else start
+        stages, tail = stages[:previous], stages[previous + 1:]
+    else:
+        tail = []
+    if start is None:
+        start = stages[-1]["start_materials"] + stages[-1]["steps"] * stages[-1]["batch"] if stages else first_start
     kept = [r for r in records if "validation_score" in r or "session_steps_per_second" in r]
     steps = max((r["step"] for r in records if "step" in r), default=0)
     name = f"{len(stages):02d}_{re.sub('[^a-z0-9]+', '_', label.lower()).strip('_')}.jsonl"
     STAGES.mkdir(parents=True, exist_ok=True)
     (STAGES / name).write_text("".join(json.dumps(r) + "\n" for r in kept))
     stages.append({"label": label, "file": name, "batch": batch, "steps": steps, "start_materials": start})
+    stages += tail
     (STAGES / "stages.json").write_text(json.dumps(stages, indent=2) + "\n")
 
 
@@ -51,16 +61,18 @@ def plot(output: Path) -> None:
     stages = load_stages()
     figure, axes = plt.subplots(1, 5, figsize=(20, 4))
     names = ["normal", "diffuse", "roughness", "specular"]
-    for stage in stages:
+    for index, stage in enumerate(stages):
+        colour = f"C{index}"
         records = [json.loads(line) for line in (STAGES / stage["file"]).read_text().splitlines()]
         validations = [r for r in records if "validation_score" in r]
         x = [(stage["start_materials"] + r["step"] * stage["batch"]) / 1000 for r in validations]
         for axis, name in zip(axes, names):
-            axis.plot(x, [r["validation_rmse"][name] for r in validations], marker=".", label=stage["label"])
+            axis.plot(x, [r["validation_rmse"][name] for r in validations], marker=".", label=stage["label"],
+                      color=colour)
         axes[0].plot(x, [r["validation_flat_normal_rmse"] for r in validations], "k:", linewidth=1)
         rerender = [(xi, r["validation_rerender_rmse"]) for xi, r in zip(x, validations) if "validation_rerender_rmse" in r]
         if rerender:
-            axes[4].plot(*zip(*rerender), marker=".", label=stage["label"])
+            axes[4].plot(*zip(*rerender), marker=".", label=stage["label"], color=colour)
     for axis, name in zip(axes, names + ["re-render (sRGB)"]):
         axis.set_title(f"{name} RMSE" + (" (dotted: flat)" if name == "normal" else ""))
         axis.set_xlabel("training materials seen [thousands]")
@@ -81,10 +93,12 @@ def main() -> None:
                         help="append a stage: its label, its run's log and its batch size")
     parser.add_argument("--first-start", type=int, default=19_288,
                         help="materials seen before the first stage (the model shipped on 2026-11-22: 2,411 steps of 8)")
+    parser.add_argument("--start", type=int, default=None,
+                        help="materials seen before the stage added (default: where the last stage ended)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "learning_curve.png")
     args = parser.parse_args()
     for label, log, batch in args.add:
-        add_stage(label, Path(log), int(batch), args.first_start)
+        add_stage(label, Path(log), int(batch), args.first_start, args.start)
     plot(args.output)
 
 
