@@ -40,7 +40,7 @@ import torch
 import torch.nn.functional as F
 
 from . import constants, geometry
-from .data.synth import flash_falloff, lighting_mark, network_input
+from .data.synth import encode_inputs
 from .errors import InputError
 from .imageio import image_size, read_focal_length_35mm, read_image
 from .material import Material
@@ -222,9 +222,8 @@ def load_photo(path: str | Path, fov: float | None = None, resolution: int | str
     if note:
         notes.append(note)
     if focal:
-        used_fov, source = field_of_view_from_focal(focal, width, height), "exif"
-        if crop is not None:  # the lens saw the whole frame; the square used is a part of it
-            used_fov = field_of_view_from_focal(focal, full_width, full_height, min(box[2], box[3]))
+        # The lens saw the whole frame; the square used (its centre square, or a crop's) is part of it.
+        used_fov, source = field_of_view_from_focal(focal, full_width, full_height, side), "exif"
         notes.append(f"field of view {used_fov:.1f} deg from the EXIF 35 mm-equivalent focal length {focal:g} mm")
     elif fov is not None:
         used_fov, source = float(fov), "argument"
@@ -312,11 +311,8 @@ def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tenso
     height, width = photos.shape[-2:]
     stride = model.config.stride
     pad_h, pad_w = (-height) % stride, (-width) % stride
-    mark = lighting_mark(lights, height, width, fov, model.config.convention, model.config.plane_extent)
-    extra = model.config.extra_inputs
-    falloff = (flash_falloff(lights, height, width, fov, model.config.convention, model.config.plane_extent)
-               if "shading" in extra else None)
-    inputs = network_input(photos, mark, extra, falloff)
+    inputs = encode_inputs(photos, lights, fov, model.config.convention, model.config.plane_extent,
+                           model.config.extra_inputs)
     if pad_h or pad_w:
         inputs = F.pad(inputs, (0, pad_w, 0, pad_h), mode="reflect")
     with torch.no_grad():

@@ -4,7 +4,7 @@ For a batch of materials M this draws, per material, a hand-held offset and a va
 renders M and M + xi under the same flash through the renderer interface (the ``svbrdf``
 plugin), turns both renders into photos (exposure and white-balance jitter, shot and read
 noise, clipping, 8-bit sRGB quantisation) and builds the 9-channel network inputs that
-training and capture share (``network_input``).
+training and capture share (``encode_inputs``).
 
 Shapes: maps (B, 10, H, W) [normal 3, diffuse 3, roughness 1, specular 3]; images (B, 3, H, W)
 linear; offsets (B, 2) [patch half-widths]; lights (B, 3) [patch half-widths].
@@ -173,6 +173,17 @@ def log_compress(photo: torch.Tensor, eps: float = LOG_EPS) -> torch.Tensor:
     return (torch.log(photo + eps) - math.log(eps)) / (math.log(1.0 + eps) - math.log(eps))
 
 
+def _reference_render(material: torch.Tensor, lights: torch.Tensor, fov: float, convention: str,
+                      extent: float) -> torch.Tensor:
+    """A fixed reference material (1, 10, H, W) rendered under each co-located flash of ``lights``
+    (B, 3), without gradients: (B, 3, H, W) linear."""
+    from ..render import render_flash
+
+    batch = material.to(lights).expand(lights.shape[0], -1, -1, -1)
+    with torch.no_grad():
+        return render_flash(batch, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
+
+
 def lighting_mark(lights: torch.Tensor, height: int, width: int, fov: float = constants.DEFAULT_FOV_DEG,
                   convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
     """The lighting-mark image: the fixed reference material rendered under each light, clipped to [0, 1].
@@ -183,12 +194,8 @@ def lighting_mark(lights: torch.Tensor, height: int, width: int, fov: float = co
     Returns:
         (B, 3, H, W).
     """
-    from ..render import render_flash
-
-    reference = geometry.lighting_mark_material(height, width).to(lights).expand(lights.shape[0], -1, -1, -1)
-    with torch.no_grad():
-        image = render_flash(reference, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
-    return image.clamp(0.0, 1.0)
+    return _reference_render(geometry.lighting_mark_material(height, width), lights, fov, convention,
+                             extent).clamp(0.0, 1.0)
 
 
 #: Optional input channels (three each) that make the shading explicit (``NetworkConfig.extra_inputs``):
@@ -207,14 +214,9 @@ def flash_falloff(lights: torch.Tensor, height: int, width: int, fov: float = co
     """A flat white Lambertian (specular 0) rendered under each co-located flash, (B, 1, H, W): the
     flash's falloff and the cosine at every pixel (``physical``: (H / d)^3 for a flash at height H
     and distance d; a co-located flash sees no Fresnel reflection from specular 0)."""
-    from ..render import render_flash
-
     white = torch.zeros(1, constants.BASIS_CHANNELS, height, width)
     white[:, 2], white[:, 3:6], white[:, 6] = 1.0, 1.0, 1.0
-    white = white.to(lights).expand(lights.shape[0], -1, -1, -1)
-    with torch.no_grad():
-        image = render_flash(white, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
-    return image[:, :1]
+    return _reference_render(white, lights, fov, convention, extent)[:, :1]
 
 
 def extra_input_channels(photo: torch.Tensor, names: tuple[str, ...], falloff: torch.Tensor | None = None) -> torch.Tensor:
@@ -269,6 +271,18 @@ def network_input(photo: torch.Tensor, mark: torch.Tensor, extra_inputs: tuple[s
     return torch.cat([base, extra_input_channels(photo, tuple(extra_inputs), falloff)], dim=1)
 
 
+def encode_inputs(photos: torch.Tensor, lights: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG,
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0,
+                  extra_inputs: tuple[str, ...] = ()) -> torch.Tensor:
+    """The network input of photos (B, 3, H, W) taken under flashes at ``lights`` (B, 3): their
+    lighting marks (and flash falloffs, for ``shading``) rendered and ``network_input`` built.
+    Training and capture both call this."""
+    height, width = photos.shape[-2:]
+    mark = lighting_mark(lights, height, width, fov, convention, extent)
+    falloff = flash_falloff(lights, height, width, fov, convention, extent) if "shading" in extra_inputs else None
+    return network_input(photos, mark, tuple(extra_inputs), falloff)
+
+
 # --- a training batch -------------------------------------------------------------------------------
 
 
@@ -305,23 +319,19 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
     """
     from ..render import render_flash
 
-    batch, _, height, width = maps.shape
+    batch = maps.shape[0]
     variation = sample_variation(batch, generator, config.max_rotation, config.max_shift)
     varied = variation.apply(maps)
     offsets = sample_offsets(batch, generator, config.fov, config.max_offset_deg, config.offset_sigma_divisor)
     # Random numbers come from the (CPU) generator; the renders run where the maps are.
     lights = geometry.light_positions(offsets, config.fov).to(maps.device)
+    both_lights = torch.cat([lights, lights])
     with torch.no_grad():
-        radiance = render_flash(torch.cat([maps, varied]), torch.cat([lights, lights]).view(2 * batch, 1, 3),
+        radiance = render_flash(torch.cat([maps, varied]), both_lights.view(2 * batch, 1, 3),
                                 fov=config.fov, convention=config.convention)[:, 0]
     gains = sample_gains(batch, generator, config)
     photos = simulate_photo(radiance, generator, config, gains=torch.cat([gains, gains]))
-    mark = lighting_mark(lights, height, width, config.fov, config.convention)
-    marks = torch.cat([mark, mark])
-    falloff = None
-    if "shading" in extra_inputs:
-        falloff = flash_falloff(lights, height, width, config.fov, config.convention).repeat(2, 1, 1, 1)
-    inputs = network_input(photos, marks, tuple(extra_inputs), falloff)
+    inputs = encode_inputs(photos, both_lights, config.fov, config.convention, extra_inputs=extra_inputs)
     return TrainingBatch(maps=maps, varied_maps=varied, variation=variation, offsets=offsets, lights=lights,
                          inputs=inputs[:batch], varied_inputs=inputs[batch:], photos=photos[:batch],
                          varied_photos=photos[batch:])
