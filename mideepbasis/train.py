@@ -296,20 +296,20 @@ def sample_render_geometry(batch: int, count: int, generator: torch.Generator,
     Returns:
         lights, views: (B, K, 3) positions [patch half-widths].
     """
-    def positions(n):
+    def positions():
+        """(B, K, 3) positions drawn as the docstring says."""
+        n = batch * count
         cos = min_cos + (1 - min_cos) * torch.rand(n, generator=generator)
         sin = torch.sqrt(1 - cos**2)
         phi = 2 * math.pi * torch.rand(n, generator=generator)
         length = distance[0] + (distance[1] - distance[0]) * torch.rand(n, generator=generator)
         lateral = (2 * torch.rand(n, 2, generator=generator) - 1) * jitter
         direction = torch.stack([sin * torch.cos(phi), sin * torch.sin(phi), cos], dim=-1)
-        return length[:, None] * direction + torch.cat([lateral, torch.zeros(n, 1)], dim=-1), length
+        return (length[:, None] * direction + torch.cat([lateral, torch.zeros(n, 1)], dim=-1)).view(batch, count, 3)
 
     mirrored = count // 2
-    lights, _ = positions(batch * count)
-    lights = lights.view(batch, count, 3)
-    views, _ = positions(batch * count)
-    views = views.view(batch, count, 3)
+    lights = positions()
+    views = positions()
     if mirrored:
         target = torch.cat([(2 * torch.rand(batch, mirrored, 2, generator=generator) - 1) * 0.7,
                             torch.zeros(batch, mirrored, 1)], dim=-1)
@@ -689,7 +689,6 @@ class Trainer:
         validation_sheet(batch.photos[:4], predicted[:4], maps[:4], self.out / "validation" / f"step_{self.step:07d}.png")
         self.plot_losses()
         return record
-
 
     def _validation_rerender_rmse(self, predicted: torch.Tensor, maps: torch.Tensor, count: int = 8) -> float:
         """Mean RMSE of clipped sRGB re-renderings under ``count`` seeded lights and views (the
