@@ -89,7 +89,15 @@ def _draw_light_diagram(draw, box: tuple[int, int, int, int], diagram: dict, fon
     x, y = diagram["estimate_deg"]
     point = (centre_x + x * scale, centre_y - y * scale)  # +y up
     draw.ellipse((point[0] - 6, point[1] - 6, point[0] + 6, point[1] + 6), fill=(255, 127, 14))
-    draw.text((left + 4, bottom - 18), "x, y [deg]; circle: 16.33 deg", fill=(80, 80, 80), font=font)
+    draw.text((left + 4, bottom - 18), f"x, y [deg]; circle: {diagram['radius_deg']:g} deg", fill=(80, 80, 80),
+              font=font)
+
+
+def _panel_image(image: np.ndarray, size: int, resample):
+    """An (H, W, 3) image in [0, 1] as an 8-bit Pillow image of ``size`` x ``size`` pixels."""
+    from PIL import Image
+
+    return Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).resize((size, size), resample)
 
 
 def _draw_curve(draw, box: tuple[int, int, int, int], values: list[float], font) -> None:
@@ -134,9 +142,7 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
     boxes = [(c * size, r * (size + band) + band, (c + 1) * size, (r + 1) * (size + band))
              for r in range(2) for c in range(columns)]
     for (title, image), box in zip(panels, boxes):
-        tile = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).resize(
-            (size - 8, size - 8), Image.Resampling.BILINEAR)
-        sheet.paste(tile, (box[0] + 4, box[1] + 4))
+        sheet.paste(_panel_image(image, size - 8, Image.Resampling.BILINEAR), (box[0] + 4, box[1] + 4))
         draw.text((box[0] + 6, box[1] - band + 4), title, fill=(0, 0, 0), font=title_font)
     light_box, curve_box, text_box, tiling_box = boxes[8], boxes[9], boxes[10], boxes[11]
     if result.material.provenance.get("capture", {}).get("tileable"):
@@ -144,9 +150,7 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
 
         # The diffuse map (sRGB) repeated 3 x 3: a seam would show as a cross through the panel.
         repeated = tiled(torch.from_numpy(np.ascontiguousarray(tiles[1])).permute(2, 0, 1)).permute(1, 2, 0).numpy()
-        tile = Image.fromarray((np.clip(repeated, 0, 1) * 255 + 0.5).astype(np.uint8)).resize(
-            (size - 8, size - 8), Image.Resampling.BOX)
-        sheet.paste(tile, (tiling_box[0] + 4, tiling_box[1] + 4))
+        sheet.paste(_panel_image(repeated, size - 8, Image.Resampling.BOX), (tiling_box[0] + 4, tiling_box[1] + 4))
         draw.text((tiling_box[0] + 6, tiling_box[1] - band + 4), "diffuse, tiled 3 x 3", fill=(0, 0, 0),
                   font=title_font)
     source = "searched" if result.searched else "given"
