@@ -72,18 +72,17 @@ class EnvironmentProtocol:
 
 def parse_environments(text: str) -> tuple[str, ...]:
     """``studio,sunsky,FILE.exr`` -> names, checked: a clear error for an unknown name or missing file."""
-    from pathlib import Path
-
     from .errors import InputError
-    from .render.scenes import ENVIRONMENTS, SUNSKY, UNIFORM
+    from .render.scenes import environment_part
 
     names = tuple(name.strip() for name in text.split(",") if name.strip())
     if not names:
         raise InputError("--environment needs at least one of studio, sunsky, uniform or an EXR/HDR file")
     for name in names:
-        if name not in ENVIRONMENTS and name not in (SUNSKY, UNIFORM) and not Path(name).is_file():
-            raise InputError(f"--environment: {name!r} is neither {sorted(ENVIRONMENTS) + [SUNSKY, UNIFORM]} "
-                             "nor an existing EXR/HDR file")
+        try:
+            environment_part(name)  # the scenes' own check
+        except InputError as error:
+            raise InputError(f"--environment: {error}") from None
     return names
 
 

@@ -62,8 +62,9 @@ def set_material(scene: mi.Scene, material, shape: str = "sample") -> None:
 SHAPES = ("plane", "sphere", "cloth")
 
 
-def _environment_part(environment: str) -> dict:
-    """The env_*.xml include and its parameters for an environment name or file."""
+def environment_part(environment: str) -> dict:
+    """The env_*.xml include and its parameters for an environment name or file; a one-line
+    InputError for a name that is none of the known ones nor an existing file."""
     if environment == SUNSKY:
         return {"env_part": "env_sunsky.xml"}
     if environment == UNIFORM:
@@ -101,7 +102,7 @@ def shape_scene(material, shape: str = "sphere", environment: str = "studio", ti
     scene = _load("preview_shape.xml", spp=spp, resolution=resolution, convention=convention, env_scale=scale,
                   shape_part=f"shape_{shape}.xml", tiles=tiles,
                   **({"tiles_around": 2 * tiles} if shape == "sphere" else {}), **camera,
-                  **_environment_part(environment))
+                  **environment_part(environment))
     set_material(scene, material, shape="object")
     return scene
 
@@ -158,7 +159,7 @@ def preview_scene(material, environment: str = "studio", spp: int = constants.DE
               "camera_z": distance * math.sin(elevation_rad)}
     common = dict(spp=spp, resolution=resolution, preview_fov=fov, convention=convention, env_scale=scale,
                   pixel_format=pixel_format, sampler=sampler, **camera)
-    part = _environment_part(environment)
+    part = environment_part(environment)
     files = {"env_sunsky.xml": "preview_sunsky.xml", "env_uniform.xml": "preview_uniform.xml",
              "env_envmap.xml": "preview_envmap.xml"}
     scene = _load(files[part.pop("env_part")], **part, **common)
