@@ -32,3 +32,16 @@ def write_report(path: Path, name: str, report: dict) -> Path:
     temporary.replace(path)
     print(f"wrote {path}")
     return path
+
+
+def save_figure(figure, path: Path, dpi: int = 90) -> Path:
+    """Save a matplotlib figure as a PNG atomically (temporary file, then rename) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.stem}.tmp.png")
+    figure.savefig(temporary, dpi=dpi)
+    plt.close(figure)
+    temporary.replace(path)
+    return path

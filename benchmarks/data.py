@@ -27,7 +27,7 @@ from pathlib import Path
 import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 import numpy as np
 import torch
-from common import RESULTS, write_report
+from common import RESULTS, save_figure, write_report
 
 SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 
@@ -175,11 +175,7 @@ def coverage(count: int, output: Path, legacy_relief: bool = False) -> dict:
         axis.legend(fontsize=7)
     figure.suptitle("Coverage of the procedural generator: per-material statistics of the maps (as the renderer uses them)")
     figure.tight_layout()
-    output.parent.mkdir(parents=True, exist_ok=True)
-    temporary = output.with_name(f".{output.stem}.tmp.png")
-    figure.savefig(temporary, dpi=90)
-    temporary.replace(output)
-    plt.close(figure)
+    save_figure(figure, output)
 
     def summary(values):
         return {name: [round(float(np.percentile(values[:, i], q)), 4) for q in (5, 50, 95)]

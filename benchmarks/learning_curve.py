@@ -18,7 +18,7 @@ import json
 import re
 from pathlib import Path
 
-from common import RESULTS
+from common import RESULTS, save_figure
 
 STAGES = RESULTS / "training"
 
@@ -80,10 +80,7 @@ def plot(output: Path) -> None:
     axes[0].legend(fontsize=7)
     figure.suptitle("held-out procedural validation (64 materials, 128 px), the shipped model's lineage")
     figure.tight_layout()
-    output.parent.mkdir(parents=True, exist_ok=True)
-    temporary = output.with_name(f".{output.name}.tmp.png")
-    figure.savefig(temporary, dpi=90)
-    temporary.replace(output)
+    save_figure(figure, output)
     print(f"wrote {output}")
 
 
