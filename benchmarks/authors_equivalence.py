@@ -24,6 +24,8 @@ import mideepbasis  # noqa: F401
 import torch
 from common import RESULTS, write_report
 
+from mideepbasis import constants
+
 CAMERA_HEIGHT = 2.414  # their fovZ for a 45 degree field of view
 
 
@@ -80,13 +82,13 @@ def main() -> None:
         error = rendered.clamp(0, 1) - photo
         deviations = local_net(torch.cat([inputs, error], 1), global_bases, weights)
         bases = deviations + planes
-        normal, rest = bases.split([3, 7], 2)
+        normal, rest = bases.split(constants.NORMAL_AND_REFLECTANCE, 2)
         normal = normal / (normal.pow(2).sum(2, keepdim=True).sqrt() + 1e-12)
         bases = torch.cat([normal, rest], 2).clamp(-1, 1)
         maps = (weights.unsqueeze(2) * bases).sum(1)
 
-    from mideepbasis.data.synth import lighting_mark
     from mideepbasis.model.checkpoint import import_authors_weights, load_model
+    from mideepbasis.model.inputs import lighting_mark
 
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
@@ -104,7 +106,7 @@ def main() -> None:
         "global_bases": (ours.global_bases - global_bases).abs().max(),
         "error_map": (ours.error - error).abs().max(),
         "local_deviations": (ours.deviations - deviations).abs().max(),
-        "blended_maps_signed": (ours.extras["signed_maps"] - maps).abs().max(),
+        "blended_maps_signed": (ours.signed_maps - maps).abs().max(),
     }
     report = {"authors_repo": str(args.authors_repo), "camera_height": CAMERA_HEIGHT, "input": "256x256, centred flash",
               "max_abs_difference": {k: float(v) for k, v in differences.items()},

@@ -34,10 +34,10 @@ from common import RESULTS, write_report  # noqa: E402
 TARGETS_S = {"known_light": 0.5, "search": 1.0, "search_refine": 3.0, "search_refine_paper": 3.0, "command": 6.0,
              "search_refine_1024": 15.0}
 CONFIGURATIONS = {
-    "known_light": {"light": (0.25, -0.17), "refine_steps": 0, "resolution": 256},
-    "search": {"light": None, "refine_steps": 0, "resolution": 256},
+    "known_light": {"light": (0.25, -0.17), "refine": {"steps": 0}, "resolution": 256},
+    "search": {"light": None, "refine": {"steps": 0}, "resolution": 256},
     "search_refine": {"light": None, "resolution": 256},
-    "search_refine_paper": {"light": None, "refine_steps": 500, "refine_normals": True, "resolution": 256},
+    "search_refine_paper": {"light": None, "refine": {"steps": 500, "normals": True}, "resolution": 256},
     "search_refine_1024": {"light": None, "resolution": 1024},
 }
 
@@ -45,18 +45,18 @@ CONFIGURATIONS = {
 def measure(name: str, model: str | None, repeats: int) -> dict:
     """Runs in a child process: times ``capture`` for one configuration."""
     import mideepbasis  # noqa: F401
-    from mideepbasis.capture import CaptureConfig, capture
-    from mideepbasis.model.checkpoint import load_model
+    from mideepbasis.capture import CaptureConfig, Capturer, RefineConfig
     from mideepbasis.render.api import example_capture_dir
 
     photo = example_capture_dir() / "photo.jpg"
-    network = load_model(model)
-    config = CaptureConfig(**CONFIGURATIONS[name])
-    capture(photo, model=network, config=config)  # warm-up: kernels compiled
+    settings = dict(CONFIGURATIONS[name])
+    refine = RefineConfig(**settings.pop("refine", {}))
+    capturer = Capturer(model, CaptureConfig(refine=refine, **settings))
+    capturer.capture(photo)  # warm-up: kernels compiled
     runs, stages = [], []
     for _ in range(repeats):
         start = time.perf_counter()
-        result = capture(photo, model=network, config=config)
+        result = capturer.capture(photo)
         runs.append(time.perf_counter() - start)
         stages.append(result.timings)
     median_stages = {stage: statistics.median(s[stage] for s in stages) for stage in stages[0]}

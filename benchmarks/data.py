@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from common import RESULTS, save_figure, write_report
 
+from mideepbasis import constants
+
 SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 
 #: Targets of the issue.
@@ -111,9 +113,10 @@ def _statistics(maps: np.ndarray) -> np.ndarray:
     """Per-material statistics: means and spreads of diffuse, roughness, specular, tilt [deg], the
     specular's colour (mean max - min over RGB), and the correlation of the diffuse luminance with
     the height integrated from the normals (positive: brighter is higher, darker is deeper)."""
-    normal, diffuse, roughness, specular = maps[:3], maps[3:6].mean(0), maps[6], maps[7:10].mean(0)
+    normal, diffuse = maps[constants.NORMAL], maps[constants.DIFFUSE].mean(0)
+    roughness, specular = maps[constants.ROUGHNESS][0], maps[constants.SPECULAR].mean(0)
     tilt = np.degrees(np.arccos(np.clip(normal[2], -1, 1)))
-    chroma = (maps[7:10].max(0) - maps[7:10].min(0)).mean()
+    chroma = (maps[constants.SPECULAR].max(0) - maps[constants.SPECULAR].min(0)).mean()
     height = height_from_normals(normal)
     if height.std() < 1e-6 or diffuse.std() < 1e-6:
         correlation = 0.0

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import mideepbasis  # noqa: F401
@@ -23,27 +24,25 @@ import torch
 from common import RESULTS, write_report
 from tqdm import tqdm
 
-from mideepbasis import geometry
-from mideepbasis.capture import CaptureConfig, maps_from_bases, predict, refine_global_bases
+from mideepbasis.capture import Capturer, Photo, RefineConfig
 from mideepbasis.evaluate import (EvaluationConfig, evaluation_offsets, flash_photos, load_evaluation_set,
                                   random_lights_and_views, score, summary_scores)
-from mideepbasis.model.checkpoint import load_model
 from mideepbasis.render import render_flash
 
 SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 
 
-def variants(steps: int) -> dict[str, dict]:
-    """Name -> refine_global_bases keyword arguments (steps 0: the network's prediction as is)."""
+def variants(steps: int) -> dict[str, RefineConfig]:
+    """Name -> refinement settings (steps 0: the network's prediction as is); the rest as capture's defaults."""
     half, quarter = steps // 2, steps // 4
     return {
-        "none": {"steps": 0},
-        f"all channels, {steps} steps (paper)": {"steps": steps},
-        f"all channels + prior 0.1, {steps} steps": {"steps": steps, "prior": 0.1},
-        f"d, r, s only, {steps} steps": {"steps": steps, "refine_normals": False},
-        f"d, r, s only, {half} steps": {"steps": half, "refine_normals": False},
-        f"d, r, s only, {quarter} steps": {"steps": quarter, "refine_normals": False},
-        f"d, r, s only + prior 0.1, {half} steps": {"steps": half, "refine_normals": False, "prior": 0.1},
+        "none": RefineConfig(steps=0),
+        f"all channels, {steps} steps (paper)": RefineConfig(steps=steps, normals=True),
+        f"all channels + prior 0.1, {steps} steps": RefineConfig(steps=steps, normals=True, prior=0.1),
+        f"d, r, s only, {steps} steps": RefineConfig(steps=steps),
+        f"d, r, s only, {half} steps": RefineConfig(steps=half),
+        f"d, r, s only, {quarter} steps": RefineConfig(steps=quarter),
+        f"d, r, s only + prior 0.1, {half} steps": RefineConfig(steps=half, prior=0.1),
     }
 
 
@@ -58,9 +57,10 @@ def main() -> None:
 
     if not args.data.is_dir():
         raise SystemExit(f"{args.data}: shared test data not found")
-    model = load_model(args.model)
+    capturer = Capturer(args.model)
+    model = capturer.model
     convention, extent = model.config.convention, model.config.plane_extent
-    defaults, evaluation = CaptureConfig(), EvaluationConfig(data="")
+    evaluation = EvaluationConfig(data="")
     seed, fov = evaluation.seed, evaluation.fov
     names, truth, _ = load_evaluation_set(args.data, "deschaintre5")
     offsets = evaluation_offsets(len(truth), seed, fov)
@@ -72,18 +72,12 @@ def main() -> None:
     photo_l1 = {name: [] for name in table}
     seconds = {name: 0.0 for name in table}
     for index in tqdm(chosen, desc="materials", unit="material"):
-        photos, flash = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention, extent)
-        position = geometry.light_positions(offsets[index].view(1, 2), fov)
-        output = predict(model, photos, position, fov)
-        for name, options in table.items():
+        photos, position = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention, extent)
+        photo, offset = Photo(photos[0], fov, "argument"), offsets[index]
+        output = capturer.predict(photo, offset)
+        for name, refine in table.items():
             started = time.perf_counter()
-            if options["steps"]:
-                bases, _ = refine_global_bases(output, photos[0], position[0], fov, convention,
-                                               resolution=defaults.refine_resolution, lr=defaults.refine_lr,
-                                               extent=extent, **options)
-                maps = maps_from_bases(output, bases).cpu()
-            else:
-                maps = output.maps.cpu()
+            maps = capturer.with_config(refine=refine).refine(output, photo, offset)[0].maps.cpu()
             seconds[name] += time.perf_counter() - started
             predictions[name].append(maps)
             # How well the material explains the photo it came from (what the refinement minimises).
@@ -96,7 +90,7 @@ def main() -> None:
         metrics = score(torch.cat(predictions[name]), subset, lights, views, convention)
         rows[name] = {**summary_scores({key: float(value.mean()) for key, value in metrics.items()}),
                       "photo_l1": sum(photo_l1[name]) / len(chosen),
-                      "seconds_per_material": seconds[name] / len(chosen), **table[name]}
+                      "seconds_per_material": seconds[name] / len(chosen), **asdict(table[name])}
         maps = rows[name]["maps_rmse"]
         print(f"{name:42s} n {maps['normal']:.4f} d {maps['diffuse']:.4f} r {maps['roughness']:.4f} "
               f"s {maps['specular']:.4f} | render {rows[name]['render_rmse']:.4f} flip {rows[name]['render_flip']:.4f} "

@@ -22,7 +22,7 @@ import torch
 from common import RESULTS, write_report
 from tqdm import tqdm
 
-from mideepbasis.capture import CaptureConfig, search_light
+from mideepbasis.capture import CaptureConfig, Capturer, Photo, SearchConfig
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import sample_offsets
 from mideepbasis.evaluate import ROUGHNESS_GROUPS, flash_photos, light_error_deg
@@ -56,11 +56,11 @@ def main() -> None:
 
     rows = {}
     for prior in args.priors:
-        config = CaptureConfig(search_prior=prior)
+        capturer = Capturer(model, CaptureConfig(fov=args.fov, search=SearchConfig(prior=prior)))
         errors = {group: [] for group in ROUGHNESS_GROUPS}
         started = time.perf_counter()
         for group, photo, offset in tqdm(cases, desc=f"prior {prior:g}", unit="search"):
-            found, _, _ = search_light(model, photo, args.fov, config)
+            found = capturer.search(Photo(photo, args.fov, "argument")).offset
             errors[group].append(light_error_deg(found, offset.tolist(), args.fov))
         everything = sum(errors.values(), [])
         rows[f"{prior:g}"] = {**{group: {"count": len(v), "mean_deg": float(np.mean(v)) if v else None}

@@ -25,7 +25,7 @@ import torch
 from common import RESULTS, write_report
 
 from mideepbasis import constants
-from mideepbasis.capture import CaptureConfig, capture
+from mideepbasis.capture import CaptureConfig, RefineConfig, capture
 from mideepbasis.export import save_capture
 from mideepbasis.imageio import linear_to_srgb
 from mideepbasis.material import Material
@@ -42,7 +42,7 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as temporary:
         folder = Path(temporary) / "capture"
-        save_capture(capture(example_capture_dir() / "photo.jpg", config=CaptureConfig(refine_steps=0)), folder)
+        save_capture(capture(example_capture_dir() / "photo.jpg", config=CaptureConfig(refine=RefineConfig(steps=0))), folder)
         fov = json.loads((folder / "light.json").read_text())["fov_deg"]
         height = constants.camera_height(fov)
         maps = Material.load(folder).to_tensor()[None]

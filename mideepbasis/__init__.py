@@ -34,7 +34,7 @@ _RENDERING = {"render_material": "mideepbasis.render.api", "render_flash": "mide
 
 
 def __getattr__(name):
-    if name == "capture":  # the submodule, callable as its capture function (see capture.py)
+    if name == "capture":  # the submodule, callable as its capture function (see capture/__init__.py)
         import importlib
 
         return importlib.import_module("mideepbasis.capture")

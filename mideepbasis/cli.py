@@ -113,7 +113,7 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("--fov", type=float, default=None, help="field of view of the photo's width [deg] (default: EXIF, else 45)")
     parser.add_argument("--light", type=_offset, default=None, metavar="TX,TY",
                         help="known flash offset [patch half-widths]: skips the lighting search")
-    parser.add_argument("--refine-steps", type=int, default=defaults.refine_steps, help="0 turns refinement off")
+    parser.add_argument("--refine-steps", type=int, default=defaults.refine.steps, help="0 turns refinement off")
     parser.add_argument("--refine-normals", action="store_true",
                         help="let the refinement turn the global bases' normals too (the paper's refinement)")
     parser.add_argument("--resolution", type=_resolution, default=defaults.resolution, metavar="N|native",
@@ -151,9 +151,8 @@ def _photos(paths: list[Path]) -> list[Path]:
 def _run_capture(args) -> int:
     from tqdm import tqdm
 
-    from .capture import CaptureConfig, capture
+    from .capture import CaptureConfig, Capturer, RefineConfig
     from .export import check_output, save_capture
-    from .model.checkpoint import load_model
 
     photos = _photos(args.photos)
     if not photos:
@@ -167,15 +166,15 @@ def _run_capture(args) -> int:
         if not single:
             raise InputError("--truth compares one capture with its true material: give one photo")
         truth = Material.load(args.truth)
-    model = load_model(args.model)
-    config = CaptureConfig(fov=args.fov, light=args.light, refine_steps=args.refine_steps,
-                           refine_normals=args.refine_normals, resolution=args.resolution,
+    config = CaptureConfig(fov=args.fov, light=args.light, resolution=args.resolution,
+                           refine=RefineConfig(steps=args.refine_steps, normals=args.refine_normals),
                            network_resolution=args.network_resolution, tileable=args.tileable, crop=args.crop)
+    capturer = Capturer(args.model, config)
     failures = []
     for photo in tqdm(photos, desc="capturing", unit="photo", disable=single):
         target = args.output if single else args.output / photo.stem
         try:
-            result = capture(photo, model=model, config=config, progress=single)
+            result = capturer.capture(photo, progress=single)
             save_capture(result, target, exr=args.exr, overwrite=args.overwrite or not single, progress=single,
                          truth=truth, preview_tiles=args.preview_tiles)
             if args.viewer_screenshot:
@@ -236,7 +235,7 @@ def _run_demo(args) -> None:
         print(f"note: {note}")
     truth = Material.load(folder / "truth").to_tensor()[None]
     truth = torch.nn.functional.interpolate(truth, size=result.material.width, mode="area")
-    truth[:, :3] = torch.nn.functional.normalize(truth[:, :3], dim=1)
+    truth[:, constants.NORMAL] = torch.nn.functional.normalize(truth[:, constants.NORMAL], dim=1)
     errors = {name: float(value[0]) for name, value in map_rmse(result.material.to_tensor()[None], truth).items()}
     light_error = light_error_deg(result.offset, truth_light["offset"], result.fov)
     print(f"captured {folder / 'photo.jpg'} into {args.output} in {sum(result.timings.values()):.1f} s")
@@ -410,7 +409,7 @@ def _run_train(args) -> None:
             network[key] = False
     extra = tuple(name.strip() for name in args.extra_inputs.split(",") if name.strip())
     if extra:
-        from .data.synth import EXTRA_INPUTS
+        from .model.inputs import EXTRA_INPUTS
 
         unknown = sorted(set(extra) - set(EXTRA_INPUTS))
         if unknown:

@@ -72,6 +72,20 @@ NUM_BASES = 10
 #: Parameters of one basis material: normal 3, diffuse 3, roughness 1, specular 3.
 BASIS_CHANNELS = 10
 
+#: The 10-channel layout of maps (B, 10, H, W) and bases (..., 10, ...), written down once:
+#: the channels of each map, and the reflectance parameters (everything after the normal).
+NORMAL = slice(0, 3)
+DIFFUSE = slice(3, 6)
+ROUGHNESS = slice(6, 7)
+SPECULAR = slice(7, 10)
+REFLECTANCE = slice(3, 10)
+
+#: Split sizes of the normal and the reflectance parameters, for ``tensor.split``.
+NORMAL_AND_REFLECTANCE = (3, 7)
+
+#: The maps in layout order, by name.
+MAP_SLICES = {"normal": NORMAL, "diffuse": DIFFUSE, "roughness": ROUGHNESS, "specular": SPECULAR}
+
 #: Weight of the variation-consistency loss: L = L_sup + VC_LOSS_WEIGHT * L_vc.
 VC_LOSS_WEIGHT = 0.05
 

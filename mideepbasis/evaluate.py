@@ -71,10 +71,11 @@ def map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict[str, torch.Te
     def rmse(a, b):
         return ((a - b) ** 2).mean(dim=(1, 2, 3)).sqrt()
 
-    return {"normal": rmse((predicted[:, 0:3] + 1) / 2, (truth[:, 0:3] + 1) / 2),
-            "diffuse": rmse(predicted[:, 3:6], truth[:, 3:6]),
-            "roughness": rmse(predicted[:, 6:7], truth[:, 6:7]),
-            "specular": rmse(predicted[:, 7:10], truth[:, 7:10])}
+    # Normals in the stored encoding (n + 1) / 2, the other maps as they are.
+    stored_predicted = torch.cat([(predicted[:, constants.NORMAL] + 1) / 2, predicted[:, constants.REFLECTANCE]], dim=1)
+    stored_truth = torch.cat([(truth[:, constants.NORMAL] + 1) / 2, truth[:, constants.REFLECTANCE]], dim=1)
+    return {name: rmse(stored_predicted[:, channels], stored_truth[:, channels])
+            for name, channels in constants.MAP_SLICES.items()}
 
 
 def rerender(maps: torch.Tensor, lights: torch.Tensor, views: torch.Tensor, convention: str,
@@ -105,7 +106,7 @@ def trivial_baseline(materials: torch.Tensor) -> torch.Tensor:
     """The trivial prediction for a set (N, 10, H, W): a flat normal and the set's mean maps, (10, H, W)."""
     mean = materials.mean(dim=(0, 2, 3))
     baseline = mean.view(10, 1, 1).expand(10, *materials.shape[-2:]).clone()
-    baseline[0:3] = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1)
+    baseline[constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1)
     return baseline
 
 
@@ -359,7 +360,7 @@ def load_evaluation_materials(data: str | Path, format: str) -> EvaluationSet:
         if material.stored_normal is None:
             stored.append(tensor)
         else:
-            stored.append(torch.cat([material.stored_normal.detach().float(), tensor[3:]]))
+            stored.append(torch.cat([material.stored_normal.detach().float(), tensor[constants.REFLECTANCE]]))
         repaired.append(int(material.provenance.get("repaired_normal_pixels", 0)))
     if not maps:
         from .errors import InputError
@@ -379,7 +380,7 @@ def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch
 
 def _resize_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
     small = torch.nn.functional.interpolate(maps[None], size=(size, size), mode="area")[0]
-    small[:3] = torch.nn.functional.normalize(small[:3], dim=0)
+    small[constants.NORMAL] = torch.nn.functional.normalize(small[constants.NORMAL], dim=0)
     return small
 
 
@@ -434,35 +435,32 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
 
     from tqdm import tqdm
 
-    from .capture import CaptureConfig, maps_from_bases, predict, refine_global_bases, search_light
+    from .capture import CaptureConfig, Capturer, Photo, RefineConfig
 
     convention = model.config.convention
-    capture_config = CaptureConfig(refine_normals=refine_normals, network_resolution=network_resolution)
+    capturer = Capturer(model, CaptureConfig(fov=fov, network_resolution=network_resolution,
+                                             refine=RefineConfig(steps=refine_steps, normals=refine_normals)))
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
-        photos, lights = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention,
-                                      model.config.plane_extent)
+        photos, _ = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention,
+                                 model.config.plane_extent)
+        photo = Photo(photos[0], fov, "argument")
         if light == "search":
-            found, history, _ = search_light(model, photos[0], fov, capture_config)
-            offset = torch.tensor(found)
+            found = capturer.search(photo)
+            offset, history = found.offset, found.history
         else:
             offset, history = offsets[index], []
-        position = geometry.light_positions(offset.view(1, 2), fov)
-        output = predict(model, photos, position, fov, capture_config.network_resolution)
+        output = capturer.predict(photo, offset)
         plain.append(output.maps.cpu())
         seconds = time.perf_counter() - started
         refine_seconds = 0.0
         if refine_steps and output.weights is not None:
             started = time.perf_counter()
-            refined, _ = refine_global_bases(output, photos[0], position[0], fov, convention, steps=refine_steps,
-                                             resolution=capture_config.refine_resolution, lr=capture_config.refine_lr,
-                                             extent=model.config.plane_extent,
-                                             refine_normals=capture_config.refine_normals,
-                                             prior=capture_config.refine_prior)
-            refined_maps.append(maps_from_bases(output, refined).cpu())
+            refined, _ = capturer.refine(output, photo, offset)
+            refined_maps.append(refined.maps.cpu())
             refine_seconds = time.perf_counter() - started
-        details.append({"light_error_deg": light_error_deg(offset.tolist(), offsets[index].tolist(), fov),
+        details.append({"light_error_deg": light_error_deg(torch.as_tensor(offset).tolist(), offsets[index].tolist(), fov),
                         "search_passes": len(history), "seconds": seconds, "refine_seconds": refine_seconds})
     return torch.cat(plain), (torch.cat(refined_maps) if refined_maps else None), details
 
@@ -498,7 +496,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     rows: dict[str, dict] = {}
     per_material: dict[str, dict] = {}
     predictions = {}
-    steps = config.refine_steps or (CaptureConfig().refine_steps if config.baselines else 0)
+    steps = config.refine_steps or (CaptureConfig().refine.steps if config.baselines else 0)
     plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model",
                                            config.refine_normals, config.network_resolution)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
@@ -593,11 +591,11 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
     import matplotlib.pyplot as plt
     from tqdm import tqdm
 
-    from .capture import CaptureConfig, predict, search_light
+    from .capture import CaptureConfig, Capturer, Photo
     from .data.synth import sample_offsets
 
     convention = model.config.convention
-    capture_config = CaptureConfig(network_resolution=config.network_resolution)
+    capturer = Capturer(model, CaptureConfig(fov=config.fov, network_resolution=config.network_resolution))
     errors = {group: [] for group in ROUGHNESS_GROUPS}
     for index in tqdm(range(len(truth)), desc="lighting search", unit="material", disable=not progress):
         roughness = float(truth[index, 6].mean())
@@ -606,7 +604,7 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
         for offset in offsets:
             photos, _ = flash_photos(truth[index:index + 1], offset.view(1, 2), config.fov, convention,
                                      model.config.plane_extent)
-            found, _, _ = search_light(model, photos[0], config.fov, capture_config)
+            found = capturer.search(Photo(photos[0], config.fov, "argument")).offset
             errors[group].append(light_error_deg(found, offset.tolist(), config.fov))
     table = {group: {"count": len(v), "mean_deg": float(np.mean(v)) if v else None,
                      "median_deg": float(np.median(v)) if v else None,
@@ -625,13 +623,11 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
         offsets = torch.stack([radius * torch.cos(directions), radius * torch.sin(directions)], -1)
         maps_rmse, render_rmse = [], []
         for index in range(len(truth)):
-            photos, lights_true = flash_photos(truth[index:index + 1], offsets[index:index + 1], config.fov, convention,
+            photos, _ = flash_photos(truth[index:index + 1], offsets[index:index + 1], config.fov, convention,
                                                model.config.plane_extent)
-            position = lights_true
-            if config.light == "search":
-                found, _, _ = search_light(model, photos[0], config.fov, capture_config)
-                position = geometry.light_positions(torch.tensor([found]), config.fov)
-            predicted = predict(model, photos, position, config.fov, config.network_resolution).maps.cpu()
+            photo = Photo(photos[0], config.fov, "argument")
+            found = capturer.search(photo).offset if config.light == "search" else offsets[index]
+            predicted = capturer.predict(photo, found).maps.cpu()
             rmse = map_rmse(predicted, truth[index:index + 1])
             maps_rmse.append(float(sum(v[0] for v in rmse.values()) / 4))
             render_rmse.append(float(rerender_rmse(predicted, truth[index:index + 1], lights, views, convention)[0]))

@@ -61,8 +61,8 @@ def lighting_mark_material(height: int, width: int) -> torch.Tensor:
     """
     maps = torch.empty(1, constants.BASIS_CHANNELS, height, width)
     maps[:, 0:2] = 0.0
-    maps[:, 2] = 1.0
-    maps[:, 3:6] = constants.LIGHTING_MARK_DIFFUSE
-    maps[:, 6] = constants.LIGHTING_MARK_ROUGHNESS
-    maps[:, 7:10] = constants.LIGHTING_MARK_SPECULAR
+    maps[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+    maps[:, constants.DIFFUSE] = constants.LIGHTING_MARK_DIFFUSE
+    maps[:, constants.ROUGHNESS] = constants.LIGHTING_MARK_ROUGHNESS
+    maps[:, constants.SPECULAR] = constants.LIGHTING_MARK_SPECULAR
     return maps

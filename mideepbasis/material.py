@@ -167,10 +167,11 @@ class Material:
         """
         source = kwargs.get("source", "material")
         t = _as_map(source, "tensor", t, constants.BASIS_CHANNELS)
-        normal = torch.cat([t[0:2], t[2:3].clamp(min=0)], dim=0)
+        normal = t[constants.NORMAL]
+        normal = torch.cat([normal[0:2], normal[2:3].clamp(min=0)], dim=0)
         normal = normal / _length(normal, keepdim=True).clamp(min=1e-12)
-        rest = t[3:].clamp(0, 1)
-        return cls(normal, rest[0:3], rest[3:4], rest[4:7], **kwargs)
+        t = t.clamp(0, 1)
+        return cls(normal, t[constants.DIFFUSE], t[constants.ROUGHNESS], t[constants.SPECULAR], **kwargs)
 
     @classmethod
     def constant(

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from . import constants
 from .imageio import linear_to_srgb, write_image
 
 
@@ -56,8 +57,9 @@ def plot_training_log(log_path: Path, output: Path) -> Path | None:
 def map_tiles(maps: torch.Tensor) -> list[np.ndarray]:
     """(10, H, W) maps as four (H, W, 3) sRGB-encoded tiles: normal, diffuse, roughness, specular."""
     hwc = maps.detach().cpu().permute(1, 2, 0).numpy()
-    return [(hwc[..., 0:3] + 1) / 2, linear_to_srgb(np.clip(hwc[..., 3:6], 0, 1)),
-            np.repeat(hwc[..., 6:7], 3, axis=2), linear_to_srgb(np.clip(hwc[..., 7:10], 0, 1))]
+    return [(hwc[..., constants.NORMAL] + 1) / 2, linear_to_srgb(np.clip(hwc[..., constants.DIFFUSE], 0, 1)),
+            np.repeat(hwc[..., constants.ROUGHNESS], 3, axis=2),
+            linear_to_srgb(np.clip(hwc[..., constants.SPECULAR], 0, 1))]
 
 
 def validation_sheet(photos: torch.Tensor, predicted: torch.Tensor, truth: torch.Tensor, output: Path) -> Path:

@@ -219,7 +219,7 @@ def augment(maps: torch.Tensor, size: int, rng: np.random.Generator) -> torch.Te
         maps = maps.rot90(1, dims=(-2, -1))
         x, y = maps[0].clone(), maps[1].clone()
         maps[0], maps[1] = -y, x
-    maps[:3] = torch.nn.functional.normalize(maps[:3], dim=0)
+    maps[constants.NORMAL] = torch.nn.functional.normalize(maps[constants.NORMAL], dim=0)
     return maps
 
 
@@ -242,9 +242,9 @@ class StepBatchSampler(Sampler):
 
 def vary_signed(variation: Variation, signed: torch.Tensor) -> torch.Tensor:
     """Apply xi to signed-space parameters (B, 10, ...) (maps or bases with channels at dim 1)."""
-    normal, rest = signed.split([3, 7], dim=1)
+    normal, rest = signed.split(constants.NORMAL_AND_REFLECTANCE, dim=1)
     varied = variation.apply(torch.cat([normal, rest * 0.5 + 0.5], dim=1))
-    return torch.cat([varied[:, :3], varied[:, 3:] * 2.0 - 1.0], dim=1)
+    return torch.cat([varied[:, constants.NORMAL], varied[:, constants.REFLECTANCE] * 2.0 - 1.0], dim=1)
 
 
 def channel_weights(normal_weight: float, device=None) -> torch.Tensor:
@@ -338,17 +338,6 @@ def rendering_loss(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.T
         with torch.no_grad():
             reference = render_flash(truth.float(), lights, views=views, convention=convention)
         return (torch.log1p(rendered.clamp(min=0.0)) - torch.log1p(reference.clamp(min=0.0))).abs().mean()
-
-
-def split_output(output: DeepBasisOutput, batch: int) -> tuple[DeepBasisOutput, DeepBasisOutput]:
-    """The first ``batch`` items and the rest, as two outputs."""
-    def part(selection):
-        values = {f.name: (getattr(output, f.name)[selection] if isinstance(getattr(output, f.name), torch.Tensor)
-                           else getattr(output, f.name)) for f in dataclasses.fields(output) if f.name != "extras"}
-        extras = {k: v[selection] for k, v in output.extras.items() if isinstance(v, torch.Tensor)}
-        return DeepBasisOutput(**values, extras=extras)
-
-    return part(slice(0, batch)), part(slice(batch, None))
 
 
 # --- the loop ------------------------------------------------------------------------------------
@@ -528,7 +517,7 @@ class Trainer:
             output = self.model(inputs.to(self.device), lights.to(self.device), fov=self.synthesis.fov)
         target = batch.maps.to(self.device)
         if use_vc:
-            original, varied = split_output(output, maps.shape[0])
+            original, varied = output.split(maps.shape[0])
             variation = Variation(batch.variation.rotation.to(self.device), batch.variation.shift.to(self.device))
             sup = supervised_loss(original, target, config.normal_weight)
             vc = variation_consistency_loss(original, varied, variation, batch.varied_maps.to(self.device),
@@ -675,7 +664,7 @@ class Trainer:
         predicted, maps = torch.cat(predicted), batch.maps
         rmse = map_rmse(predicted, maps)
         flat = maps.clone()
-        flat[:, 0:3] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+        flat[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
         score = sum(rmse.values()) / len(rmse)
         record = {"step": self.step, "validation_rmse": rmse, "validation_score": score,
                   "validation_rerender_rmse": self._validation_rerender_rmse(predicted, maps),
@@ -730,13 +719,12 @@ VALIDATION_SEED = 10**9
 def map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
     """RMSE of each map over a batch (B, 10, H, W), in the in-memory encoding."""
     rmse = ((predicted - truth) ** 2).mean(dim=(0, 2, 3)).sqrt()
-    return {"normal": rmse[0:3].mean().item(), "diffuse": rmse[3:6].mean().item(), "roughness": rmse[6].item(),
-            "specular": rmse[7:10].mean().item()}
+    return {name: rmse[channels].mean().item() for name, channels in constants.MAP_SLICES.items()}
 
 
 def mean_tilt_deg(maps: torch.Tensor) -> float:
     """Mean angle between the normals of (B, 10, H, W) maps and +z [deg]: how much relief there is."""
-    return torch.rad2deg(torch.acos(maps[:, 2].clamp(-1.0, 1.0))).mean().item()
+    return torch.rad2deg(torch.acos(maps[:, constants.NORMAL][:, 2].clamp(-1.0, 1.0))).mean().item()
 
 
 def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> Path:

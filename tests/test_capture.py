@@ -14,8 +14,8 @@ import torch.nn.functional as F
 from PIL import Image
 
 from mideepbasis import cli, constants
-from mideepbasis.capture import (CaptureConfig, capture, field_of_view_from_focal, load_photo, maps_from_bases, predict,
-                                 refine_global_bases, search_light, trained_resolution)
+from mideepbasis.capture import (CaptureConfig, Capturer, Photo, RefineConfig, SearchConfig, capture,
+                                 field_of_view_from_focal, load_photo, predict, refine_global_bases)
 from mideepbasis.evaluate import flash_photos, light_error_deg
 from mideepbasis.export import save_capture
 from mideepbasis.imageio import write_image
@@ -42,9 +42,8 @@ class OracleModel(DeepBasisNet):
         global_bases = signed.mean(dim=(2, 3)).view(1, 1, 10)
         deviations = (signed - global_bases.view(1, 10, 1, 1)).view(1, 1, 10, *signed.shape[-2:])
         weights = torch.ones(1, 1, *signed.shape[-2:])
-        output = DeepBasisOutput(maps=None, weights=weights, global_bases=global_bases, deviations=deviations)
-        output.maps = maps_by_hand(global_bases, deviations)
-        return output
+        return DeepBasisOutput(maps=maps_by_hand(global_bases, deviations), weights=weights, global_bases=global_bases,
+                               deviations=deviations)
 
 
 def maps_by_hand(global_bases: torch.Tensor, deviations: torch.Tensor) -> torch.Tensor:
@@ -56,6 +55,11 @@ def maps_by_hand(global_bases: torch.Tensor, deviations: torch.Tensor) -> torch.
     normal = torch.cat([normal[:, :2], normal[:, 2:].clamp(min=0.0)], dim=1)
     normal = normal / normal.norm(dim=1, keepdim=True)
     return torch.cat([normal, (signed[:, 3:].clamp(-1.0, 1.0) * 0.5 + 0.5).clamp(0.0, 1.0)], dim=1)
+
+
+def oracle_search(truth, photo, config: SearchConfig):
+    """The lighting search of capture's engine, with the oracle as its network."""
+    return Capturer(OracleModel(truth), CaptureConfig(search=config)).search(Photo(photo, 45.0, "argument"))
 
 
 def material(seed=3, size=64):
@@ -77,9 +81,9 @@ def test_lighting_search_finds_the_flash(seed, offset_deg):
     height = constants.camera_height(45.0)
     offset = torch.tensor([[height * math.tan(math.radians(a)) for a in offset_deg]])
     photos, _ = flash_photos(truth, offset)
-    found, history, _ = search_light(OracleModel(truth), photos[0], 45.0, CaptureConfig(search_resolution=64))
-    assert light_error_deg(found, offset[0].tolist()) < 1.0, (found, offset, history)
-    assert 2 <= len(history) <= CaptureConfig().search_passes + 1
+    found = oracle_search(truth, photos[0], SearchConfig(resolution=64))
+    assert light_error_deg(found.offset, offset[0].tolist()) < 1.0, (found.offset, offset, found.history)
+    assert 2 <= len(found.history) <= SearchConfig().passes + 1
 
 
 def test_the_search_prior_pulls_toward_the_centre_only_where_the_photo_does_not_decide():
@@ -87,12 +91,12 @@ def test_the_search_prior_pulls_toward_the_centre_only_where_the_photo_does_not_
     height = constants.camera_height(45.0)
     offset = torch.tensor([[height * math.tan(math.radians(a)) for a in (-10.0, 3.0)]])
     photos, _ = flash_photos(truth, offset)
-    config = CaptureConfig(search_resolution=64)
+    config = SearchConfig(resolution=64)
     # The default weight leaves a clear highlight where it is ...
-    found, _, _ = search_light(OracleModel(truth), photos[0], 45.0, config)
+    found = oracle_search(truth, photos[0], config).offset
     assert light_error_deg(found, offset[0].tolist()) < 1.0
     # ... and one far stronger than any photo error (mean L1 <= 1) puts the flash at the centre.
-    centred, _, _ = search_light(OracleModel(truth), photos[0], 45.0, replace(config, search_prior=100.0))
+    centred = oracle_search(truth, photos[0], replace(config, prior=100.0)).offset
     assert centred == pytest.approx((0.0, 0.0), abs=1e-6)
 
 
@@ -100,7 +104,8 @@ def test_refinement_lowers_the_error_and_moves_only_the_global_bases():
     truth = material(5)
     photos, lights = flash_photos(truth, torch.tensor([[0.2, 0.1]]))
     output = OracleModel(truth)(None)
-    output.global_bases = output.global_bases + torch.tensor([0.0, 0.0, 0.0, 0.3, -0.2, 0.25, 0.4, -0.3, 0.2, 0.1]).view(1, 1, 10)
+    output = replace(output, global_bases=output.global_bases
+                     + torch.tensor([0.0, 0.0, 0.0, 0.3, -0.2, 0.25, 0.4, -0.3, 0.2, 0.1]).view(1, 1, 10))
     weights, deviations = output.weights.clone(), output.deviations.clone()
 
     def error(global_bases):
@@ -109,10 +114,11 @@ def test_refinement_lowers_the_error_and_moves_only_the_global_bases():
         return float((rendered - photos).abs().mean())
 
     # The package's rebuild of the maps from the bases agrees with the one written out here.
-    assert torch.allclose(maps_from_bases(output, output.global_bases), maps_by_hand(output.global_bases, output.deviations),
+    assert torch.allclose(output.compose(output.global_bases).maps, maps_by_hand(output.global_bases, output.deviations),
                           atol=1e-6)
     before = error(output.global_bases)
-    refined, losses = refine_global_bases(output, photos[0], lights[0], 45.0, "physical", steps=150, resolution=32, lr=0.02)
+    refined, losses = refine_global_bases(output, photos[0], lights[0], 45.0, "physical",
+                                          config=RefineConfig(steps=150, resolution=32, lr=0.02, normals=True))
     assert error(refined) < 0.5 * before
     assert losses[-1] < losses[0]
     assert torch.equal(output.weights, weights) and torch.equal(output.deviations, deviations)
@@ -123,14 +129,14 @@ def test_refinement_can_keep_the_normals_and_be_pulled_to_the_prediction():
     photos, lights = flash_photos(truth, torch.tensor([[0.2, 0.1]]))
     output = OracleModel(truth)(None)
     wrong = torch.tensor([0.3, -0.2, 0.0, 0.3, -0.2, 0.25, 0.4, -0.3, 0.2, 0.1]).view(1, 1, 10)
-    output.global_bases = output.global_bases + wrong
+    output = replace(output, global_bases=output.global_bases + wrong)
     predicted = output.global_bases.clone()
 
     def refine(**options):
-        return refine_global_bases(output, photos[0], lights[0], 45.0, "physical", steps=60, resolution=32, lr=0.02,
-                                   **options)[0]
+        config = RefineConfig(**{"steps": 60, "resolution": 32, "lr": 0.02, "normals": True, **options})
+        return refine_global_bases(output, photos[0], lights[0], 45.0, "physical", config=config)[0]
 
-    free, kept = refine(), refine(refine_normals=False)
+    free, kept = refine(), refine(normals=False)
     assert not torch.allclose(free[..., :3], predicted[..., :3], atol=1e-3)
     assert torch.equal(kept[..., :3], predicted[..., :3])
     assert not torch.allclose(kept[..., 3:], predicted[..., 3:], atol=1e-3)
@@ -148,7 +154,7 @@ def test_the_network_runs_at_its_training_resolution_and_the_prediction_is_upsam
     path = save_checkpoint(tmp_path / "m.safetensors", DeepBasisNet(preset("tiny")).eval(),
                            metadata={"training": {"config": {"size": 32}}})
     model = load_model(path)
-    assert trained_resolution(model) == 32
+    assert model.info.training_size == 32
     truth = material(7, size=64)
     photos, lights = flash_photos(truth, torch.tensor([[0.1, -0.2]]))
     limited = predict(model, photos, lights)
@@ -201,8 +207,8 @@ def test_capture_outputs_load_back_render_and_validate(tmp_path, tiny_checkpoint
     truth = material(4, size=64)
     photos, _ = flash_photos(truth, torch.tensor([[0.1, -0.1]]))
     write_image(tmp_path / "shot.png", photos[0].permute(1, 2, 0).numpy(), encode_srgb=True)
-    result = capture(tmp_path / "shot.png", model=tiny_checkpoint, resolution=64, refine_steps=20,
-                     search_resolution=32, search_grid=9)
+    result = capture(tmp_path / "shot.png", model=tiny_checkpoint, resolution=64, refine=RefineConfig(steps=20),
+                     search=SearchConfig(resolution=32, grid=9))
     out = save_capture(result, tmp_path / "out", exr=True, environment_spp=4)
 
     loaded = Material.load(out)
@@ -327,10 +333,10 @@ def test_a_capture_imports_neither_dynamo_nor_plotting_libraries(tmp_path):
     import sys
 
     script = ("import sys\n"
-              "from mideepbasis.capture import capture, CaptureConfig\n"
+              "from mideepbasis.capture import capture, CaptureConfig, RefineConfig\n"
               "from mideepbasis.export import save_capture\n"
               "from mideepbasis.render.api import example_capture_dir\n"
-              "result = capture(example_capture_dir() / 'photo.jpg', config=CaptureConfig(refine_steps=2))\n"
+              "result = capture(example_capture_dir() / 'photo.jpg', config=CaptureConfig(refine=RefineConfig(steps=2)))\n"
               f"save_capture(result, {str(tmp_path / 'out')!r})\n"
               "print(sorted(m for m in ('torch._dynamo', 'matplotlib', 'colour', 'sympy') if m in sys.modules))\n")
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
@@ -345,7 +351,7 @@ def test_the_public_capture_is_callable_as_design_promises(tmp_path):
 
     script = ("from mideepbasis import capture\n"
               "from mideepbasis.render.api import example_capture_dir\n"
-              "result = capture(example_capture_dir() / 'photo.jpg', refine_steps=0)\n"
+              "result = capture(example_capture_dir() / 'photo.jpg', refine=capture.RefineConfig(steps=0))\n"
               "from mideepbasis.capture import CaptureConfig, capture as function\n"
               "print(type(result).__name__, result.material.width, function.__name__)\n")
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from mideepbasis import cli
-from mideepbasis.capture import CaptureConfig, capture
+from mideepbasis.capture import CaptureConfig, RefineConfig, capture
 from mideepbasis.imageio import read_image
 from mideepbasis.render.api import example_capture_dir
 
@@ -39,7 +39,7 @@ def test_a_heic_captures_as_its_png(tmp_path):
     write_heic(tmp_path / "photo.heic", pixels)
     difference = read_image(tmp_path / "photo.heic") - read_image(tmp_path / "photo.png")
     assert np.sqrt((difference**2).mean()) < TOLERANCES["heic_pixel_rmse"]
-    config = CaptureConfig(light=(0.1, -0.1), refine_steps=0, fov=45.0)
+    config = CaptureConfig(light=(0.1, -0.1), refine=RefineConfig(steps=0), fov=45.0)
     maps = [capture(tmp_path / name, config=config).material.to_tensor() for name in ("photo.png", "photo.heic")]
     assert float(((maps[0] - maps[1]) ** 2).mean().sqrt()) < TOLERANCES["heic_map_rmse"]
 
@@ -57,7 +57,7 @@ def test_a_crop_captures_as_the_cropped_photo(tmp_path):
     pixels = bundled_pixels()
     Image.fromarray(pixels).save(tmp_path / "whole.png")
     Image.fromarray(pixels[40:340, 100:400]).save(tmp_path / "part.png")  # rows 40.., columns 100..
-    config = CaptureConfig(light=(0.0, 0.0), refine_steps=0, fov=30.0)
+    config = CaptureConfig(light=(0.0, 0.0), refine=RefineConfig(steps=0), fov=30.0)
     cropped = capture(tmp_path / "whole.png", config=config, crop=(100, 40, 300, 300)).material.to_tensor()
     direct = capture(tmp_path / "part.png", config=config).material.to_tensor()
     assert torch.allclose(cropped, direct, atol=1e-5)
@@ -93,8 +93,8 @@ def test_a_48_megapixel_jpeg_captures_in_little_memory(tmp_path):
     image.save(tmp_path / "big.jpg", quality=90)
     del image
     script = ("import resource, sys\n"
-              "from mideepbasis.capture import capture\n"
-              "result = capture(sys.argv[1], refine_steps=10)\n"
+              "from mideepbasis.capture import RefineConfig, capture\n"
+              "result = capture(sys.argv[1], refine=RefineConfig(steps=10))\n"
               "print(result.material.width, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
     result = subprocess.run([sys.executable, "-c", script, str(tmp_path / "big.jpg")], capture_output=True, text=True,
                             timeout=600)

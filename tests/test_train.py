@@ -42,7 +42,7 @@ def test_variation_consistency_loss_by_hand():
     original = DeepBasisOutput(maps=torch.zeros(1, 10, 1, 1), bases=basis)
     truth = torch.zeros(1, 10, 1, 1)
     truth[:, 2] = 1.0  # flat normal, every other map 0 (signed: -1)
-    varied = DeepBasisOutput(maps=truth.clone(), bases=varied_basis, extras={"signed_maps": torch.zeros(1, 10, 1, 1)})
+    varied = DeepBasisOutput(maps=truth.clone(), bases=varied_basis, signed=torch.zeros(1, 10, 1, 1))
     loss = variation_consistency_loss(original, varied, variation, truth)
     # xi on the basis: normal unchanged (rotation 0); others m -> (m + 0.5) / 1.5 in [0, 1] space.
     expected_basis = [0.0, 0.0, 1.0] + [2 * ((v * 0.5 + 0.5 + 0.5) / 1.5) - 1 for v in (0.2, -0.2, 0.0, 0.6, -1, -1, -1)]

@@ -36,12 +36,12 @@ def agreement(image: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.
 @pytest.fixture(scope="module")
 def captured(tmp_path_factory):
     """The bundled photo captured (no refinement): its folder, report.html included."""
-    from mideepbasis.capture import CaptureConfig, capture
+    from mideepbasis.capture import CaptureConfig, RefineConfig, capture
     from mideepbasis.export import save_capture
     from mideepbasis.render.api import example_capture_dir
 
     folder = tmp_path_factory.mktemp("capture") / "out"
-    result = capture(example_capture_dir() / "photo.jpg", config=CaptureConfig(refine_steps=0))
+    result = capture(example_capture_dir() / "photo.jpg", config=CaptureConfig(refine=RefineConfig(steps=0)))
     save_capture(result, folder)
     return folder
 

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import torch
 
+from .. import constants
 from ..imageio import linear_to_srgb, write_image
 
 #: Columns of one material on a sheet.
@@ -24,10 +25,10 @@ def material_panels(maps: torch.Tensor, flash: torch.Tensor) -> np.ndarray:
     def hwc(t):
         return t.permute(1, 2, 0).numpy()
 
-    normal = (hwc(maps[0:3]) + 1.0) / 2.0
-    diffuse = linear_to_srgb(hwc(maps[3:6]))
-    roughness = np.repeat(hwc(maps[6:7]), 3, axis=2)
-    specular = linear_to_srgb(hwc(maps[7:10]))
+    normal = (hwc(maps[constants.NORMAL]) + 1.0) / 2.0
+    diffuse = linear_to_srgb(hwc(maps[constants.DIFFUSE]))
+    roughness = np.repeat(hwc(maps[constants.ROUGHNESS]), 3, axis=2)
+    specular = linear_to_srgb(hwc(maps[constants.SPECULAR]))
     render = linear_to_srgb(np.clip(hwc(flash), 0.0, 1.0))
     return np.concatenate([render, normal, diffuse, roughness, specular], axis=1)
 

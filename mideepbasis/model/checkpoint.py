@@ -24,6 +24,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from ..errors import InputError
+from .inputs import ModelInfo
 from .network import DeepBasisNet, NetworkConfig
 
 FORMAT = "mideepbasis-checkpoint"
@@ -135,7 +136,7 @@ def load_model(path: str | os.PathLike | None = None, device: str | torch.device
             raise CheckpointError(f"{path}: tensor {WEIGHTS_PREFIX}{name} has shape {tuple(weights[name].shape)}, "
                                   f"the network expects {tuple(value.shape)}")
     model.load_state_dict(weights)
-    model.checkpoint = document
+    model.info = ModelInfo.from_document(document, config, str(path))
     return model.to(device).eval()
 
 

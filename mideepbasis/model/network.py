@@ -23,13 +23,14 @@ bases, no bases at all (the same encoder-decoder predicting the maps directly), 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from .. import constants
+from .inputs import BASE_CHANNELS, CHANNELS_PER_EXTRA, ModelInfo, decode_photo, input_channels
 from .nafnet import NAFNet
 
 
@@ -81,12 +82,12 @@ class NetworkConfig:
     convention: str = constants.DEFAULT_CONVENTION
     """Shading convention of the error-map render (and of the training renders)."""
 
-    input_channels: int = 9
+    input_channels: int = BASE_CHANNELS
     """Channels of the network input: 9, plus 3 per entry of ``extra_inputs``."""
 
     extra_inputs: tuple[str, ...] = ()
     """Optional input channels that make the shading explicit, after the 9 of DESIGN section 1:
-    ``shading`` and/or ``highpass`` (``data.synth.EXTRA_INPUTS``)."""
+    ``shading`` and/or ``highpass`` (``model.inputs.EXTRA_INPUTS``)."""
 
     plane_extent: float = 1.0
     """Half-width of the sample the camera frames [patch half-widths] for the error map's render:
@@ -121,14 +122,14 @@ def preset(name: str, **overrides) -> NetworkConfig:
 
 def to_signed(maps: torch.Tensor, dim: int = 1) -> torch.Tensor:
     """Maps [n, d, r, s] to the signed space [n, 2d - 1, 2r - 1, 2s - 1] along ``dim``."""
-    normal, rest = maps.split([3, 7], dim=dim)
+    normal, rest = maps.split(constants.NORMAL_AND_REFLECTANCE, dim=dim)
     return torch.cat([normal, rest * 2.0 - 1.0], dim=dim)
 
 
 def to_maps(signed: torch.Tensor, dim: int = 1, upper_hemisphere: bool = True) -> torch.Tensor:
     """Signed parameters to maps along ``dim``: unit normals (with z >= 0 unless
     ``upper_hemisphere`` is False), others clipped to [0, 1]."""
-    normal, rest = signed.split([3, 7], dim=dim)
+    normal, rest = signed.split(constants.NORMAL_AND_REFLECTANCE, dim=dim)
     if upper_hemisphere:
         x, y, z = normal.split(1, dim=dim)
         normal = torch.cat([x, y, z.clamp(min=0.0)], dim=dim)
@@ -138,7 +139,7 @@ def to_maps(signed: torch.Tensor, dim: int = 1, upper_hemisphere: bool = True) -
 
 def normalize_basis_normals(signed: torch.Tensor, dim: int) -> torch.Tensor:
     """Unit-length normal part (the first 3 entries along ``dim``) of signed bases."""
-    normal, rest = signed.split([3, 7], dim=dim)
+    normal, rest = signed.split(constants.NORMAL_AND_REFLECTANCE, dim=dim)
     normal = normal / ((normal * normal).sum(dim=dim, keepdim=True).sqrt() + 1e-12)
     return torch.cat([normal, rest], dim=dim)
 
@@ -249,9 +250,28 @@ def mlp(in_features: int, width: int, hidden_layers: int, out_features: int) -> 
 # --- the network -------------------------------------------------------------------------------------
 
 
-@dataclass
+def compose_bases(weights: torch.Tensor, global_bases: torch.Tensor, deviations: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two-level basis model: bases = unit-normal(global + deviation), blended by the weights.
+
+    Args:
+        weights: (B, N, H, W); global_bases: (B, N, 10) signed space; deviations: (B, N, 10, H, W)
+            signed space, or None for the global bases alone.
+
+    Returns:
+        (bases (B, N, 10, H, W) or, without deviations, (B, N, 10); the blend (B, 10, H, W), signed space).
+    """
+    if deviations is None:
+        return global_bases, blend(weights, global_bases)
+    bases = global_bases.to(device=deviations.device)[..., None, None] + deviations
+    bases = normalize_basis_normals(bases, dim=2).clamp(-1.0, 1.0)
+    return bases, blend(weights, bases)
+
+
+@dataclass(frozen=True, eq=False)
 class DeepBasisOutput:
-    """What DeepBasisNet predicts (see the module docstring for shapes and spaces)."""
+    """What DeepBasisNet predicts (see the module docstring for shapes and spaces). Immutable: the
+    operations below return new outputs."""
 
     maps: torch.Tensor
     """(B, 10, H, W) blended maps: unit normals, d, r, s in [0, 1]."""
@@ -271,12 +291,67 @@ class DeepBasisOutput:
     error: torch.Tensor | None = None
     """(B, 3, H, W) rendering of the globally-blended material minus the photo."""
 
+    signed: torch.Tensor | None = None
+    """(B, 10, H, W) the blend in signed space, before normalisation and clipping; None: from ``maps``."""
+
     extras: dict = field(default_factory=dict)
+    """More tensors by name (``decoder_raw``: the weight decoder's output before its tanh)."""
 
     @property
     def signed_maps(self) -> torch.Tensor:
         """The blend in signed space, before normalisation and clipping (what the loss compares)."""
-        return self.extras.get("signed_maps", to_signed(self.maps))
+        return self.signed if self.signed is not None else to_signed(self.maps)
+
+    @classmethod
+    def from_bases(cls, weights: torch.Tensor, global_bases: torch.Tensor, deviations: torch.Tensor | None = None,
+                   **fields) -> DeepBasisOutput:
+        """The output of the basis model with these weights, global bases and local deviations."""
+        bases, signed = compose_bases(weights, global_bases, deviations)
+        return cls(maps=to_maps(signed), weights=weights, global_bases=global_bases,
+                   bases=bases if deviations is not None else None, deviations=deviations, signed=signed, **fields)
+
+    def compose(self, global_bases: torch.Tensor) -> DeepBasisOutput:
+        """This prediction with other (say, refined) global bases: the maps rebuilt with the same
+        weights and local deviations."""
+        if self.weights is None:
+            raise ValueError("an output without bases (a direct network's) has no global bases to replace")
+        return DeepBasisOutput.from_bases(self.weights, global_bases.to(self.weights), self.deviations,
+                                          error=self.error, extras=self.extras)
+
+    def crop(self, height: int, width: int) -> DeepBasisOutput:
+        """The top-left height x width pixels of every per-pixel tensor."""
+        def crop(value):
+            return value[..., :height, :width] if isinstance(value, torch.Tensor) and value.ndim >= 4 else value
+
+        return self._map(crop)
+
+    def upsample(self, height: int, width: int) -> DeepBasisOutput:
+        """The prediction at height x width: the weights and local deviations (or, without bases,
+        the signed maps) upsampled bilinearly and the maps rebuilt from them. Bilinear
+        interpolation keeps the weights non-negative and summing to one."""
+        def upsample(value):
+            flat = value.reshape(value.shape[0], -1, *value.shape[-2:])
+            big = F.interpolate(flat, size=(height, width), mode="bilinear", align_corners=False)
+            return big.reshape(*value.shape[:-2], height, width)
+
+        if self.weights is None:
+            signed = upsample(self.signed_maps)
+            return DeepBasisOutput(maps=to_maps(signed), signed=signed)
+        return DeepBasisOutput.from_bases(upsample(self.weights), self.global_bases,
+                                          upsample(self.deviations) if self.deviations is not None else None,
+                                          error=upsample(self.error) if self.error is not None else None)
+
+    def split(self, batch: int) -> tuple[DeepBasisOutput, DeepBasisOutput]:
+        """The first ``batch`` items and the rest, as two outputs."""
+        return self._map(lambda value: value[:batch]), self._map(lambda value: value[batch:])
+
+    def _map(self, function) -> DeepBasisOutput:
+        """Every tensor (extras included) through ``function``."""
+        def apply(value):
+            return function(value) if isinstance(value, torch.Tensor) else value
+
+        values = {f.name: apply(getattr(self, f.name)) for f in fields(self) if f.name != "extras"}
+        return DeepBasisOutput(**values, extras={key: apply(value) for key, value in self.extras.items()})
 
 
 class DeepBasisNet(nn.Module):
@@ -285,11 +360,13 @@ class DeepBasisNet(nn.Module):
     def __init__(self, config: NetworkConfig = PRESETS["compact"]):
         super().__init__()
         self.config = config
-        if config.input_channels != 9 + 3 * len(config.extra_inputs):
-            raise ValueError(f"input_channels must be 9 + 3 per extra input ({list(config.extra_inputs)}), "
+        if config.input_channels != input_channels(config.extra_inputs):
+            raise ValueError(f"input_channels must be {BASE_CHANNELS} + {CHANNELS_PER_EXTRA} per extra input ({list(config.extra_inputs)}), "
                              f"got {config.input_channels}")
         if len(config.decoder_channels) != len(config.encoder_channels) - 1:
             raise ValueError("decoder_channels needs one entry fewer than encoder_channels (the last level outputs the weights)")
+        # How the network must be run; ``load_model`` replaces it with what its checkpoint records.
+        self.info = ModelInfo(convention=config.convention, plane_extent=config.plane_extent)
         n = config.num_bases
         out_channels = n if config.use_bases else constants.BASIS_CHANNELS
         self.encoder = Encoder(config.input_channels, config.encoder_channels)
@@ -315,7 +392,7 @@ class DeepBasisNet(nn.Module):
         raw = self.weight_decoder(levels, global_features)
         decoded = torch.tanh(raw)
         if not config.use_bases:
-            return DeepBasisOutput(maps=to_maps(decoded), extras={"signed_maps": decoded, "decoder_raw": raw})
+            return DeepBasisOutput(maps=to_maps(decoded), signed=decoded, extras={"decoder_raw": raw})
 
         batch, n = inputs.shape[0], config.num_bases
         weights = normalize_weights(decoded)
@@ -324,19 +401,17 @@ class DeepBasisNet(nn.Module):
             global_bases = normalize_basis_normals(self.global_unit(pooled).view(batch, n, constants.BASIS_CHANNELS), dim=2)
         else:
             global_bases = inputs.new_zeros(batch, n, constants.BASIS_CHANNELS)
-        output = DeepBasisOutput(maps=None, weights=weights, global_bases=global_bases, extras={"decoder_raw": raw})
+        extras = {"decoder_raw": raw}
         if not hasattr(self, "local_unit"):
-            signed = blend(weights, global_bases)
-            output.maps, output.extras["signed_maps"] = to_maps(signed), signed
-            return output
+            return DeepBasisOutput.from_bases(weights, global_bases, extras=extras)
 
         if lights is None:
             raise ValueError("the local unit needs the flash positions (lights) for its error map")
         from ..render import render_flash
 
         # The renderer takes the blended normal as it is (a normal below the surface renders black).
-        global_maps = to_maps(blend(weights, global_bases), upper_hemisphere=False)
-        photo = inputs[:, :3] * 0.5 + 0.5
+        global_maps = to_maps(compose_bases(weights, global_bases)[1], upper_hemisphere=False)
+        photo = decode_photo(inputs)
         # The render runs in float32 even under mixed-precision autocast: the GGX peak of smooth
         # bases does not survive bfloat16.
         with torch.autocast(inputs.device.type, enabled=False):
@@ -347,11 +422,7 @@ class DeepBasisNet(nn.Module):
         local_inputs = torch.cat([inputs, error, weights], dim=1)
         deviations = torch.tanh(self.local_unit(local_inputs, planes=global_bases.reshape(batch, -1)))
         deviations = deviations.view(batch, n, constants.BASIS_CHANNELS, height, width)
-        bases = normalize_basis_normals(global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
-        signed = blend(weights, bases)
-        output.maps, output.bases, output.deviations, output.error = to_maps(signed), bases, deviations, error
-        output.extras["signed_maps"] = signed
-        return output
+        return DeepBasisOutput.from_bases(weights, global_bases, deviations, error=error, extras=extras)
 
 
 def count_parameters(module: nn.Module) -> int:

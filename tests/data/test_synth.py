@@ -89,27 +89,6 @@ def test_photo_is_quantised_clipped_srgb():
     assert torch.allclose(synth.simulate_photo(radiance, generator, quiet, gains=gains), radiance.clamp(0, 1), atol=1e-5)
 
 
-def test_network_input_by_hand():
-    photo = torch.tensor([0.0, 1.0, 0.2]).view(1, 3, 1, 1)
-    mark = torch.full((1, 3, 1, 1), 0.5)
-    x = synth.network_input(photo, mark)[0, :, 0, 0]
-    eps = synth.LOG_EPS
-    log_02 = (math.log(0.2 + eps) - math.log(eps)) / (math.log(1 + eps) - math.log(eps))
-    assert x.tolist() == pytest.approx([-1, 1, -0.6, -1, 1, 2 * log_02 - 1, 0, 0, 0], abs=1e-6)
-
-
-def test_lighting_mark_is_the_reference_material_render():
-    lights = geometry.light_positions(torch.tensor([[0.0, 0.0], [0.3, -0.2]]))
-    mark = synth.lighting_mark(lights, 33, 33)
-    expected = render_flash(geometry.lighting_mark_material(33, 33).expand(2, -1, -1, -1), lights.view(2, 1, 3),
-                            backend="torch")[:, 0].clamp(0, 1)
-    assert torch.allclose(mark, expected, atol=1e-5)
-    # Diffuse 0.1, specular 0.5 at the centre under the centred flash: 0.1 + D(1) G(1)^2 F / 4 * pi,
-    # D(1) = 1 / (pi alpha^2), G(1) = 1: clipped to 1 by the highlight.
-    assert mark[0, :, 16, 16].tolist() == pytest.approx([1.0, 1.0, 1.0])
-    assert mark[0, 0, 0, 0] < 0.2 and mark[1].argmax() != mark[0].argmax()
-
-
 def test_synthesize_renders_both_materials_under_the_same_flash():
     maps = random_maps(3, 32)
     config = synth.SynthesisConfig(shot_noise=(1e-12, 1e-12), read_noise=(1e-12, 1e-12), quantize=False,
@@ -121,33 +100,3 @@ def test_synthesize_renders_both_materials_under_the_same_flash():
     expected = render_flash(batch.varied_maps, batch.lights.view(3, 1, 3), backend="torch")[:, 0].clamp(0, 1)
     assert torch.allclose(batch.varied_photos, expected, atol=1e-4)
     assert torch.equal(batch.inputs[:, 6:], batch.varied_inputs[:, 6:])  # one flash, one lighting mark
-
-
-def test_flash_falloff_is_the_white_lambertian_of_the_physical_convention():
-    from mideepbasis import constants, geometry
-    from mideepbasis.data.synth import flash_falloff
-
-    lights = geometry.light_positions(torch.tensor([[0.3, -0.2]]))
-    falloff = flash_falloff(lights, 8, 8)
-    points = geometry.pixel_points(8, 8)
-    distance = torch.linalg.vector_norm(lights[0].view(3, 1, 1) - points, dim=0)
-    height = constants.camera_height()
-    # (1 / pi) cos * pi H^2 / d^2 with cos = H / d, for a flash at height H.
-    torch.testing.assert_close(falloff[0, 0], (height / distance) ** 3, rtol=1e-5, atol=1e-6)
-
-
-def test_extra_inputs_are_bounded_and_mean_what_they_say():
-    from mideepbasis.data.synth import extra_input_channels, network_input
-
-    photo = torch.rand(2, 3, 32, 32) * 0.8
-    falloff = torch.full((2, 1, 32, 32), 0.5)
-    channels = extra_input_channels(photo, ("shading", "highpass"), falloff)
-    assert channels.shape == (2, 6, 32, 32) and channels.abs().max() <= 1.0
-    # shading: a photo equal to the falloff (a white Lambertian) gives a ratio of 1 everywhere.
-    flat = extra_input_channels(falloff.expand(2, 3, 32, 32), ("shading",), falloff)
-    assert torch.allclose(flat, flat[0, 0, 0, 0].expand_as(flat))
-    # highpass: a constant photo has no detail.
-    assert extra_input_channels(torch.full((1, 3, 16, 16), 0.3), ("highpass",)).abs().max() < 1e-5
-    inputs = network_input(photo, torch.rand(2, 3, 32, 32), ("shading", "highpass"), falloff)
-    assert inputs.shape == (2, 15, 32, 32)
-    assert torch.equal(inputs[:, :9], network_input(photo, inputs[:, 6:9] * 0.5 + 0.5))

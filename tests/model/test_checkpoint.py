@@ -46,6 +46,28 @@ def rewrite(path, target, edit_document=None, drop=None):
     return target
 
 
+def test_the_inference_contract_is_a_typed_record(saved, tmp_path):
+    from mideepbasis.errors import InputError
+    from mideepbasis.model.inputs import ModelInfo
+
+    _, path = saved
+    info = rewrite(path, tmp_path / "info.safetensors", edit_document=lambda d: d.update(
+        fov_deg=28.07, photo_decoding="gamma2.2", training={"config": {"size": 96}}))
+    assert load_model(info).info == ModelInfo(convention="physical", fov_deg=28.07, plane_extent=1.0,
+                                              photo_decoding="gamma2.2", training_size=96)
+    # A checkpoint that records none of it gets the defaults; the record cannot be edited.
+    plain = load_model(path).info
+    assert (plain.fov_deg, plain.photo_decoding, plain.training_size) == (None, "srgb", None)
+    with pytest.raises(AttributeError):
+        plain.fov_deg = 45.0
+    bad = rewrite(path, tmp_path / "decoding.safetensors", edit_document=lambda d: d.update(photo_decoding="log"))
+    with pytest.raises(InputError, match=r"decoding.safetensors: unknown photo decoding 'log'"):
+        load_model(bad)
+    # The shipped model says what it was trained at.
+    shipped = load_model().info
+    assert shipped.training_size == 128 and shipped.photo_decoding == "srgb" and shipped.convention == "physical"
+
+
 def test_wrong_version_is_a_clear_error(saved, tmp_path):
     _, path = saved
     bad = rewrite(path, tmp_path / "v9.safetensors", edit_document=lambda d: d.update(version=9))

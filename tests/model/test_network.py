@@ -43,7 +43,7 @@ def test_blend_is_a_convex_combination_of_the_bases():
     weights = out.weights
     assert weights.min() >= 0
     assert torch.allclose(weights.sum(1), torch.ones_like(weights[:, 0]), atol=1e-5)
-    signed = out.extras["signed_maps"]
+    signed = out.signed_maps
     # The blend written out independently: a sum over the bases' axis of weight times basis.
     reference = (weights.double().unsqueeze(2) * out.bases.double()).sum(dim=1)
     assert torch.allclose(signed.double(), reference, atol=1e-6)

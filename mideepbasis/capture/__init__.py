@@ -1,0 +1,42 @@
+"""Photo to material: load the photo, find the flash, predict the bases, refine the global bases.
+
+    from mideepbasis import capture
+    result = capture("flash_photo.jpg")                   # a CaptureResult
+    result.material.save("out/")
+
+Stages (DESIGN section 1), one module each, run by the engine in ``pipeline`` (``Capturer``):
+
+1. **Photo** (``photo``): read, EXIF field of view, crop, centre square, working resolution.
+2. **Lighting search** (``search``): the flash position of a hand-held shot.
+3. **Prediction** (``pipeline.predict``) with the found light: weights, global bases, local deviations.
+4. **Refinement** (``refine``): the global bases fitted to the photo by differentiable rendering.
+
+Shapes: photos (B, 3, H, W) linear in [0, 1]; lights (B, 3) flash positions and offsets (B, 2)
+[patch half-widths].
+"""
+
+from __future__ import annotations
+
+import sys
+
+from .photo import MAX_NATIVE_RESOLUTION, MIN_PHOTO_SIZE, field_of_view_from_focal, load_photo
+from .pipeline import CaptureConfig, CaptureResult, Capturer, Photo, capture, network_resolution_limit, predict
+from .refine import RefineConfig, SmallAdam, refine_global_bases
+from .search import SearchConfig, SearchResult, candidate_offsets, light_objective, search_light
+
+__all__ = ["MAX_NATIVE_RESOLUTION", "MIN_PHOTO_SIZE", "CaptureConfig", "CaptureResult", "Capturer", "Photo",
+           "RefineConfig", "SearchConfig", "SearchResult", "SmallAdam", "candidate_offsets", "capture",
+           "field_of_view_from_focal", "light_objective", "load_photo", "network_resolution_limit", "predict",
+           "refine_global_bases", "search_light"]
+
+
+class _CallableModule(type(sys.modules[__name__])):
+    """This package, callable as its ``capture`` function: DESIGN section 4 promises
+    ``from mideepbasis import capture; capture("photo.jpg")``, and once imported the subpackage
+    ``mideepbasis.capture`` is what that name is bound to."""
+
+    def __call__(self, *args, **kwargs) -> CaptureResult:
+        return capture(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -1,0 +1,315 @@
+"""The capture engine: a ``Capturer`` holds a model and a ``CaptureConfig`` and runs the stages.
+
+    capturer = Capturer()                      # the shipped model, default settings
+    photo = capturer.load("flash_photo.jpg")   # a Photo: linear pixels, field of view, notes
+    found = capturer.search(photo)             # the flash offset (SearchResult)
+    output = capturer.predict(photo, found.offset)
+    refined, losses = capturer.refine(output, photo, found.offset)
+    result = capturer.capture("flash_photo.jpg")   # all of it: a CaptureResult
+
+Evaluation and the benchmarks call these stages; every default lives once, in its config
+(``CaptureConfig``, ``SearchConfig``, ``RefineConfig``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from .. import constants, geometry
+from ..material import Material
+from ..model.inputs import encode_inputs
+from ..model.network import DeepBasisNet, DeepBasisOutput
+from .photo import load_photo
+from .refine import RefineConfig, refine_global_bases
+from .search import SearchConfig, SearchResult, search_light
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    """How a photo becomes a material."""
+
+    fov: float | None = None
+    """Field of view of the photo's width [deg]; None: from EXIF, else the model's, else 45."""
+
+    light: tuple[float, float] | None = None
+    """Known flash offset (tx, ty) [patch half-widths]; None: search for it."""
+
+    resolution: int | str = constants.DEFAULT_RESOLUTION
+    """Working resolution [pixels], or ``native`` (the photo's own, up to 2048)."""
+
+    network_resolution: int | None = None
+    """Largest resolution the network runs at [pixels]; a larger photo is predicted on a
+    downsampled copy and the weights and deviations upsampled. None: the resolution the model was
+    trained at (from its checkpoint); 0: no limit."""
+
+    search: SearchConfig = SearchConfig()
+    """The lighting search (when ``light`` is None)."""
+
+    refine: RefineConfig = RefineConfig()
+    """The refinement of the global bases (``refine.steps`` 0: none)."""
+
+    tileable: bool = False
+    """Make the captured maps wrap around their edges without a seam (``tiling.make_tileable``)."""
+
+    crop: tuple[int, int, int, int] | None = None
+    """Part of the photo that holds the sample: (x, y, width, height) [pixels of the photo as
+    shown, EXIF orientation applied]; its centre square is used. None: the whole photo."""
+
+
+@dataclass(frozen=True)
+class Photo:
+    """A photo ready for capture."""
+
+    pixels: torch.Tensor
+    """(3, R, R) linear, in [0, 1]."""
+
+    fov: float
+    """Field of view across it [deg]."""
+
+    fov_source: str
+    """Where the field of view came from: ``exif``, ``argument`` or ``default``."""
+
+    notes: list[str] = field(default_factory=list)
+    """What the user should know (a crop, the field of view's source, ...)."""
+
+
+@dataclass
+class CaptureResult:
+    """A capture: the material and everything measured on the way."""
+
+    material: Material
+    """The captured maps."""
+
+    photo: torch.Tensor
+    """(3, H, W) the working photo, linear."""
+
+    offset: tuple[float, float]
+    """The flash offset (tx, ty) used [patch half-widths]."""
+
+    fov: float
+    """Field of view [deg]."""
+
+    fov_source: str
+    """Where the field of view came from: ``exif``, ``argument`` or ``default``."""
+
+    searched: bool
+    """Whether the offset was searched for (else it was given)."""
+
+    search_history: list[dict] = field(default_factory=list)
+    """The lighting search's passes: offset [patch half-widths] and objective (mean L1) each."""
+
+    refinement_losses: list[float] = field(default_factory=list)
+    """The refinement's loss at every step."""
+
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds per stage."""
+
+    notes: list[str] = field(default_factory=list)
+    """What the user should know (a crop, the field of view's source, a dark photo)."""
+
+    output: DeepBasisOutput | None = None
+    """The network's prediction (weights, bases, ...), refined global bases included."""
+
+    @property
+    def offset_angle_deg(self) -> float:
+        """Angle of the flash offset seen from the sample centre [deg]."""
+        return float(geometry.offset_angle_deg(torch.tensor(self.offset), self.fov))
+
+    @property
+    def light_position(self) -> torch.Tensor:
+        """(3,) the flash position [patch half-widths]."""
+        return geometry.light_positions(torch.tensor(self.offset, dtype=torch.float32), self.fov)
+
+
+# --- prediction -------------------------------------------------------------------------------------
+
+
+def network_resolution_limit(model: DeepBasisNet, requested: int | None = None) -> int | None:
+    """The largest resolution [pixels] ``predict`` runs ``model`` at: ``requested``, or when it is
+    None the model's training resolution; None (or 0) means no limit."""
+    return model.info.training_size if requested is None else requested or None
+
+
+def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
+            fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None) -> DeepBasisOutput:
+    """The material seen in ``photos`` (B, 3, H, W) taken with flashes at ``lights`` (B, 3).
+
+    The network runs at most at ``network_resolution`` [pixels] (None: the resolution the model was
+    trained at, when its checkpoint says; 0: no limit). A larger photo is predicted on an
+    area-downsampled copy, and its blending weights and local deviations are upsampled to the
+    photo's size, so the maps, the refinement and everything after work at full resolution. A
+    fully convolutional network run at a larger scale than it was trained at sees every feature
+    bigger than in training; on the shared test set the shipped model (trained at 128 px) gave
+    lower errors at 128 px upsampled than run at 256 px (benchmarks/model_quality.py).
+    """
+    limit = network_resolution_limit(model, network_resolution)
+    height, width = photos.shape[-2:]
+    if not limit or max(height, width) <= limit:
+        return _network_pass(model, photos, lights, fov)
+    scale = limit / max(height, width)
+    small = F.interpolate(photos, size=(max(1, round(height * scale)), max(1, round(width * scale))), mode="area")
+    return _network_pass(model, small, lights, fov).upsample(height, width)
+
+
+def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor, fov: float) -> DeepBasisOutput:
+    """One network pass at the photos' own size; a size that is not a multiple of the network's
+    stride is padded by reflection and the prediction cropped back."""
+    device = next(model.parameters()).device
+    height, width = photos.shape[-2:]
+    stride = model.config.stride
+    pad_h, pad_w = (-height) % stride, (-width) % stride
+    inputs = encode_inputs(photos, lights, fov, model.config.convention, model.config.plane_extent,
+                           model.config.extra_inputs)
+    if pad_h or pad_w:
+        inputs = F.pad(inputs, (0, pad_w, 0, pad_h), mode="reflect")
+    with torch.no_grad():
+        output = model(inputs.to(device), lights.to(device), fov=fov)
+    return output.crop(height, width) if pad_h or pad_w else output
+
+
+# --- the engine -------------------------------------------------------------------------------------
+
+
+def flash_position(offset: tuple[float, float] | torch.Tensor, fov: float) -> torch.Tensor:
+    """(3,) the flash position of an offset (tx, ty) [patch half-widths]: float32 from numbers, a
+    tensor's own precision from a tensor (the evaluation's offsets are float64)."""
+    offset = offset if isinstance(offset, torch.Tensor) else torch.tensor(offset, dtype=torch.float32)
+    return geometry.light_positions(offset, fov)
+
+
+class Capturer:
+    """A model and the settings of its captures; its stages are what ``capture`` runs.
+
+    Args:
+        model: a DeepBasisNet, a checkpoint path, or None for the shipped model (loaded once).
+        config: the capture settings.
+    """
+
+    def __init__(self, model: DeepBasisNet | str | Path | None = None, config: CaptureConfig = CaptureConfig()):
+        if not isinstance(model, DeepBasisNet):
+            from ..model.checkpoint import load_model
+
+            model = load_model(model)
+        self.model, self.config = model, config
+
+    def with_config(self, **overrides) -> Capturer:
+        """This model with some ``CaptureConfig`` fields replaced (no reload)."""
+        capturer = object.__new__(Capturer)
+        capturer.model, capturer.config = self.model, replace(self.config, **overrides)
+        return capturer
+
+    @property
+    def convention(self) -> str:
+        return self.model.info.convention
+
+    def load(self, path: str | Path) -> Photo:
+        """Read a photo file (``capture.photo.load_photo``) with the model's photo decoding and the
+        field of view of the config, else of the model, else of the photo's EXIF or 45 deg."""
+        info = self.model.info
+        requested = self.config.fov if self.config.fov is not None else info.fov_deg
+        pixels, fov, source, notes = load_photo(path, requested, self.config.resolution,
+                                                decoding=info.photo_decoding, crop=self.config.crop)
+        return Photo(pixels, fov, source, self._fov_notes(fov, notes))
+
+    def photo_from_tensor(self, pixels: torch.Tensor) -> Photo:
+        """A (3, H, W) linear tensor as a photo (the config's field of view, else the model's, else 45 deg)."""
+        requested = self.config.fov if self.config.fov is not None else self.model.info.fov_deg
+        fov, source = (requested, "argument") if requested else (constants.DEFAULT_FOV_DEG, "default")
+        return Photo(pixels.float().clamp(0, 1), fov, source, self._fov_notes(fov, []))
+
+    def _fov_notes(self, fov: float, notes: list[str]) -> list[str]:
+        trained = self.model.info.fov_deg
+        if trained and abs(fov - trained) > 1.0:
+            notes = notes + [f"this model was trained for a {trained:g} deg field of view, the photo has {fov:.1f} deg"]
+        return notes
+
+    def predict(self, photo: Photo, offset: tuple[float, float] | torch.Tensor) -> DeepBasisOutput:
+        """The network's prediction for the photo taken with the flash at ``offset`` [patch half-widths]."""
+        light = flash_position(offset, photo.fov)
+        return predict(self.model, photo.pixels[None], light[None], photo.fov, self.config.network_resolution)
+
+    def search(self, photo: Photo) -> SearchResult:
+        """The flash offset of a hand-held photo (``capture.search.search_light``)."""
+        def predictor(photos: torch.Tensor, lights: torch.Tensor) -> DeepBasisOutput:
+            return predict(self.model, photos, lights, photo.fov, self.config.network_resolution)
+
+        return search_light(predictor, photo.pixels, photo.fov, self.convention, self.model.config.plane_extent,
+                            self.config.search)
+
+    def refine(self, output: DeepBasisOutput, photo: Photo, offset: tuple[float, float] | torch.Tensor,
+               progress: bool = False) -> tuple[DeepBasisOutput, list[float]]:
+        """The prediction with its global bases refined against the photo, and the loss at every step;
+        the prediction as it is when there is nothing to refine (no steps, or no bases)."""
+        if self.config.refine.steps <= 0 or output.weights is None:
+            return output, []
+        light = flash_position(offset, photo.fov)
+        refined, losses = refine_global_bases(output, photo.pixels, light, photo.fov, self.convention,
+                                              self.model.config.plane_extent, self.config.refine, progress)
+        return output.compose(refined), losses
+
+    def capture(self, image: str | Path | torch.Tensor, progress: bool = False) -> CaptureResult:
+        """Capture a material from one flash photo: a file, or a (3, H, W) linear tensor."""
+        config, timings = self.config, {}
+        start = time.perf_counter()
+        photo = self.photo_from_tensor(image) if isinstance(image, torch.Tensor) else self.load(image)
+        timings["photo"] = time.perf_counter() - start
+
+        start = time.perf_counter()
+        history = []
+        if config.light is None:
+            found = self.search(photo)
+            offset, history = found.offset, found.history
+            timings["search"] = time.perf_counter() - start
+            start = time.perf_counter()
+        else:
+            offset = (float(config.light[0]), float(config.light[1]))
+        output = self.predict(photo, offset)
+        timings["predict"] = time.perf_counter() - start
+
+        losses = []
+        if config.refine.steps > 0 and output.weights is not None:
+            start = time.perf_counter()
+            output, losses = self.refine(output, photo, offset, progress)
+            timings["refine"] = time.perf_counter() - start
+        maps = output.maps.cpu()
+        if config.tileable:
+            from ..tiling import make_tileable
+
+            maps = make_tileable(maps[0], source="photo" if isinstance(image, torch.Tensor) else str(image))[None]
+        material = Material.from_tensor(maps[0], convention=self.convention,
+                                        provenance={"capture": {"offset": list(offset), "fov": photo.fov,
+                                                                "fov_source": photo.fov_source,
+                                                                "searched": config.light is None,
+                                                                "refine_steps": config.refine.steps,
+                                                                "tileable": config.tileable}})
+        return CaptureResult(material=material, photo=photo.pixels, offset=offset, fov=photo.fov,
+                             fov_source=photo.fov_source, searched=config.light is None, search_history=history,
+                             refinement_losses=losses, timings=timings, notes=photo.notes, output=output)
+
+
+def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path | None = None,
+            config: CaptureConfig = CaptureConfig(), progress: bool = False, **overrides) -> CaptureResult:
+    """Capture a material from one flash photo.
+
+    Args:
+        image: a photo file, or a (3, H, W) linear tensor (then ``config.fov`` or 45 deg applies).
+        model: a DeepBasisNet, a checkpoint path, or None for the shipped model.
+        config: the capture settings; keyword ``overrides`` replace its fields
+            (``refine=RefineConfig(steps=0)``, ``light=(0.1, 0.0)``, ...).
+        progress: show progress bars.
+
+    Returns:
+        the CaptureResult (material, light, timings, losses, notes).
+    """
+    config = replace(config, **overrides) if overrides else config
+    start = time.perf_counter()
+    capturer = Capturer(model, config)
+    loaded = time.perf_counter() - start
+    result = capturer.capture(image, progress)
+    result.timings = {"model": loaded, **result.timings}
+    return result

@@ -1,0 +1,141 @@
+"""Refinement of the global bases by differentiable rendering.
+
+Only the N global bases move: Adam on the L1 difference between the photo and the rendering of the
+blended material (rendered through the plugin, gradients through the bridge); the weights and
+local deviations stay fixed. It runs on a downsampled copy: the global bases are a few numbers, and
+the photo's large-scale appearance determines them.
+
+Shapes: photo (3, H, W) linear; light (3,) [patch half-widths]; global bases (1, N, 10) signed space.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .. import constants
+from ..model.network import DeepBasisOutput, compose_bases, to_maps
+from .search import downsample
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """How the global bases are refined."""
+
+    steps: int = 125
+    """Adam steps; 0 turns refinement off. (The paper: 500; with the normals kept, 125 did as well
+    here: benchmarks/refinement.py.)"""
+
+    resolution: int = 64
+    """Resolution of the refinement's renders [pixels]."""
+
+    lr: float = 0.01
+    """Adam learning rate [signed-space units per step]."""
+
+    normals: bool = False
+    """Whether the refinement may turn the global bases' normals, as the paper's does. Off by
+    default: fitting the one flash view by tilting the normals raised the normal and the
+    re-rendering errors (benchmarks/refinement.py)."""
+
+    prior: float = 0.0
+    """Weight of the L1 pull of the refined global bases toward the network's (0: none)."""
+
+
+class SmallAdam:
+    """Adam (Kingma and Ba 2015) for one small tensor, the update of ``torch.optim.Adam``'s
+    single-tensor path written out, so that its results are the same to the bit.
+
+    ``torch.optim.Adam`` imports ``torch._dynamo`` (with sympy) when it is first built: 1.5 - 2.6 s
+    of a capture's start-up, for a (1, N, 10) parameter.
+    """
+
+    def __init__(self, parameter: torch.Tensor, lr: float, betas: tuple[float, float] = (0.9, 0.999),
+                 eps: float = 1e-8):
+        self.parameter, self.lr, self.betas, self.eps = parameter, lr, betas, eps
+        self.exp_avg = torch.zeros_like(parameter)
+        self.exp_avg_sq = torch.zeros_like(parameter)
+        self.steps = 0
+
+    @torch.no_grad()
+    def step(self) -> None:
+        """One update from ``parameter.grad``."""
+        grad, (beta1, beta2) = self.parameter.grad, self.betas
+        self.steps += 1
+        self.exp_avg.lerp_(grad, 1 - beta1)
+        self.exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+        bias_correction1 = 1 - beta1**self.steps
+        bias_correction2_sqrt = (1 - beta2**self.steps) ** 0.5
+        denominator = (self.exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(self.eps)
+        self.parameter.addcdiv_(self.exp_avg, denominator, value=-self.lr / bias_correction1)
+
+
+def local_deviations(output: DeepBasisOutput) -> torch.Tensor:
+    """The local deviations (B, N, 10, H, W), or zeros for a network without local bases."""
+    if output.deviations is not None:
+        return output.deviations
+    batch, n = output.global_bases.shape[:2]
+    return output.global_bases.new_zeros(batch, n, constants.BASIS_CHANNELS, 1, 1).expand(
+        -1, -1, -1, *output.weights.shape[-2:])
+
+
+def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: torch.Tensor, fov: float,
+                        convention: str, extent: float = 1.0, config: RefineConfig = RefineConfig(),
+                        progress: bool = False) -> tuple[torch.Tensor, list[float]]:
+    """Optimise the global bases so the rendering matches the photo; weights and deviations stay fixed.
+
+    The loss is the mean L1 between the rendering and the photo, plus ``config.prior`` times the
+    mean L1 between the bases and the network's.
+
+    Args:
+        output: the prediction (weights, global bases, deviations) of one photo.
+        photo: (3, H, W) the photo, linear; light: (3,) the flash position.
+        fov, convention, extent: the camera's field of view [deg], the shading convention and the
+            half-width of the sample [patch half-widths].
+        config: steps, render resolution, learning rate, whether the normals move, the prior.
+
+    Returns:
+        ((1, N, 10) refined global bases, signed space; the loss at every step).
+    """
+    from tqdm import tqdm
+
+    from ..render import render_flash
+
+    resolution = config.resolution
+    weights = downsample(output.weights.detach().cpu(), resolution)
+    weights = weights / weights.sum(dim=1, keepdim=True).clamp(min=1e-6)
+    deviations = downsample(local_deviations(output).detach().cpu(), resolution)
+    target = downsample(photo[None], resolution)
+    lights = light.view(1, 1, 3)
+    predicted = output.global_bases.detach().cpu()
+    global_bases = predicted.clone().requires_grad_(True)
+    # Zero where the refinement may not move a channel: the normals unless config.normals.
+    movable = torch.ones(constants.BASIS_CHANNELS)
+    if not config.normals:
+        movable[constants.NORMAL] = 0.0
+
+    def masked(free: torch.Tensor) -> torch.Tensor:
+        return predicted + (free - predicted) * movable
+
+    optimizer = SmallAdam(global_bases, lr=config.lr)
+    losses = []
+    # The tensors here are small: waking torch's worker threads for every op costs more than it saves.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for _ in tqdm(range(config.steps), desc="refining", unit="step", disable=not progress):
+            current = masked(global_bases)
+            maps = to_maps(compose_bases(weights, current, deviations)[1])
+            rendered = render_flash(maps, lights, fov=fov, convention=convention, extent=extent)[:, 0].clamp(0.0, 1.0)
+            loss = (rendered - target).abs().mean()
+            if config.prior:
+                loss = loss + config.prior * (current - predicted).abs().mean()
+            global_bases.grad = None
+            loss.backward()
+            optimizer.step()
+            with torch.no_grad():  # keep the bases inside the signed space the network predicts in
+                global_bases.clamp_(-1.0, 1.0)
+            losses.append(loss.item())
+    finally:
+        torch.set_num_threads(threads)
+    return masked(global_bases.detach()), losses

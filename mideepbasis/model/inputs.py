@@ -1,0 +1,204 @@
+"""The network's inference contract: how a photo and its flash become the network's input.
+
+Training (``data.synth``) and capture both build the input here, and the network reads its
+photo back with ``decode_photo``; nothing else assumes the layout. The input of photos
+(B, 3, H, W) taken under flashes at lights (B, 3) is (B, C, H, W), every channel in [-1, 1]:
+
+======================  ============  ==========================================================
+channels                name          content
+======================  ============  ==========================================================
+``PHOTO`` 0:3           photo         the linear photo, clipped to [0, 1]
+``LOG_PHOTO`` 3:6       log photo     ``log_compress`` of it (shadows stretched)
+``LIGHTING_MARK`` 6:9   lighting mark a fixed reference material rendered under the same flash
+9 : 9 + 3 k             extras        the network's ``extra_inputs`` (``EXTRA_INPUTS``), 3 each
+======================  ============  ==========================================================
+
+(DESIGN section 1.) Shapes: photos (B, 3, H, W) linear; lights (B, 3) [patch half-widths].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .. import constants, geometry
+from ..errors import InputError
+
+#: Constant of the log compression of the network input (the DeepBasis value).
+LOG_EPS = 0.01
+
+#: Channels of the input every network has: the photo, the log photo and the lighting mark.
+PHOTO = slice(0, 3)
+LOG_PHOTO = slice(3, 6)
+LIGHTING_MARK = slice(6, 9)
+BASE_CHANNELS = 9
+
+#: Channels each optional input adds.
+CHANNELS_PER_EXTRA = 3
+
+
+def input_channels(extra_inputs: tuple[str, ...] = ()) -> int:
+    """Channels of the network input with the optional inputs ``extra_inputs``."""
+    return BASE_CHANNELS + CHANNELS_PER_EXTRA * len(extra_inputs)
+
+
+def decode_photo(inputs: torch.Tensor) -> torch.Tensor:
+    """The linear photo (B, 3, H, W) in [0, 1] back from a network input (B, C, H, W): the
+    inverse of ``network_input`` on its ``PHOTO`` channels."""
+    return inputs[:, PHOTO] * 0.5 + 0.5
+
+
+#: Photo decodings a checkpoint may ask for: how 8/16-bit photo values become linear ones.
+PHOTO_DECODINGS = ("srgb", "gamma2.2")
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """How a model must be run, as its checkpoint records it: the inference contract that capture
+    reads (``load_model`` attaches it to the network as ``model.info``)."""
+
+    convention: str
+    """Shading convention the network was trained with (``physical`` or ``deepbasis``)."""
+
+    fov_deg: float | None = None
+    """Field of view the weights were trained for [deg]; None: not recorded (any)."""
+
+    plane_extent: float = 1.0
+    """Half-width of the sample the camera frames [patch half-widths]."""
+
+    photo_decoding: str = "srgb"
+    """How 8/16-bit photo values become linear: ``srgb`` (the IEC curve) or ``gamma2.2`` (x^2.2)."""
+
+    training_size: int | None = None
+    """Resolution the network was trained at [pixels]; None: not recorded."""
+
+    @classmethod
+    def from_document(cls, document: dict, config, source: str = "checkpoint") -> ModelInfo:
+        """The record of a checkpoint's JSON document and its network's ``NetworkConfig`` (older
+        checkpoints lack some keys: the defaults apply)."""
+        decoding = document.get("photo_decoding", "srgb")
+        if decoding not in PHOTO_DECODINGS:
+            raise InputError(f"{source}: unknown photo decoding {decoding!r}; expected one of {list(PHOTO_DECODINGS)}")
+        size = ((document.get("training") or {}).get("config") or {}).get("size")
+        fov = document.get("fov_deg")
+        return cls(convention=config.convention, fov_deg=float(fov) if fov else None,
+                   plane_extent=float(config.plane_extent), photo_decoding=decoding,
+                   training_size=int(size) if size else None)
+
+
+def log_compress(photo: torch.Tensor, eps: float = LOG_EPS) -> torch.Tensor:
+    """(log(x + eps) - log(eps)) / (log(1 + eps) - log(eps)): [0, 1] to [0, 1], shadows stretched."""
+    return (torch.log(photo + eps) - math.log(eps)) / (math.log(1.0 + eps) - math.log(eps))
+
+
+def _reference_render(material: torch.Tensor, lights: torch.Tensor, fov: float, convention: str,
+                      extent: float) -> torch.Tensor:
+    """A fixed reference material (1, 10, H, W) rendered under each co-located flash of ``lights``
+    (B, 3), without gradients: (B, 3, H, W) linear."""
+    from ..render import render_flash
+
+    batch = material.to(lights).expand(lights.shape[0], -1, -1, -1)
+    with torch.no_grad():
+        return render_flash(batch, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
+
+
+def lighting_mark(lights: torch.Tensor, height: int, width: int, fov: float = constants.DEFAULT_FOV_DEG,
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
+    """The lighting-mark image: the fixed reference material rendered under each light, clipped to [0, 1].
+
+    Args:
+        lights: (B, 3) flash positions [patch half-widths].
+
+    Returns:
+        (B, 3, H, W).
+    """
+    return _reference_render(geometry.lighting_mark_material(height, width), lights, fov, convention,
+                             extent).clamp(0.0, 1.0)
+
+
+#: Optional input channels (three each) that make the shading explicit (``NetworkConfig.extra_inputs``):
+#: ``shading``: the photo divided by the flash's own falloff (a white Lambertian rendered under the
+#: same flash), log-compressed: what is left is albedo times relative shading, plus the highlight;
+#: ``highpass``: the log photo minus its Gaussian blur (sigma 1/64 of the width): local shading
+#: and texture, the flash's slow falloff removed.
+EXTRA_INPUTS = ("shading", "highpass")
+
+#: Largest ratio of photo to falloff the ``shading`` channels represent (highlights saturate there).
+MAX_SHADING_RATIO = 4.0
+
+
+def flash_falloff(lights: torch.Tensor, height: int, width: int, fov: float = constants.DEFAULT_FOV_DEG,
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
+    """A flat white Lambertian (specular 0) rendered under each co-located flash, (B, 1, H, W): the
+    flash's falloff and the cosine at every pixel (``physical``: (H / d)^3 for a flash at height H
+    and distance d; a co-located flash sees no Fresnel reflection from specular 0)."""
+    white = torch.zeros(1, constants.BASIS_CHANNELS, height, width)
+    white[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+    white[:, constants.DIFFUSE], white[:, constants.ROUGHNESS] = 1.0, 1.0
+    return _reference_render(white, lights, fov, convention, extent)[:, :1]
+
+
+def extra_input_channels(photo: torch.Tensor, names: tuple[str, ...], falloff: torch.Tensor | None = None) -> torch.Tensor:
+    """The optional input channels ``names`` (``EXTRA_INPUTS``) of photos (B, 3, H, W) in [0, 1], each in
+    [-1, 1], (B, 3 len(names), H, W). ``shading`` needs the flash's ``falloff`` (B, 1, H, W)."""
+    channels = []
+    for name in names:
+        if name == "shading":
+            if falloff is None:
+                raise ValueError("the shading input needs the flash falloff")
+            ratio = (photo / falloff.clamp(min=1e-4)).clamp(0.0, MAX_SHADING_RATIO)
+            channels.append(log_compress(ratio / MAX_SHADING_RATIO) * 2.0 - 1.0)
+        elif name == "highpass":
+            logarithm = torch.log(photo + LOG_EPS)
+            sigma = max(0.5, photo.shape[-1] / 64.0)
+            channels.append((0.5 * (logarithm - _gaussian_blur(logarithm, sigma))).clamp(-1.0, 1.0))
+        else:
+            raise ValueError(f"unknown extra input {name!r}; expected some of {EXTRA_INPUTS}")
+    return torch.cat(channels, dim=1) if channels else photo.new_zeros(photo.shape[0], 0, *photo.shape[-2:])
+
+
+def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of (B, C, H, W), edges reflected."""
+    radius = max(1, int(3 * sigma))
+    offsets = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
+    kernel = torch.exp(-(offsets**2) / (2 * sigma**2))
+    kernel = (kernel / kernel.sum()).view(1, 1, 1, -1).expand(image.shape[1], 1, 1, -1)
+    padded = torch.nn.functional.pad(image, (radius, radius, 0, 0), mode="reflect")
+    image = torch.nn.functional.conv2d(padded, kernel, groups=image.shape[1])
+    padded = torch.nn.functional.pad(image, (0, 0, radius, radius), mode="reflect")
+    return torch.nn.functional.conv2d(padded, kernel.transpose(-1, -2), groups=image.shape[1])
+
+
+def network_input(photo: torch.Tensor, mark: torch.Tensor, extra_inputs: tuple[str, ...] = (),
+                  falloff: torch.Tensor | None = None) -> torch.Tensor:
+    """The network input: [photo, log-compressed photo, lighting mark] (9 channels), each in [-1, 1],
+    then the ``extra_inputs`` channels (``extra_input_channels``).
+
+    Args:
+        photo: (B, 3, H, W) linear photo; clipped to [0, 1].
+        mark: (B, 3, H, W) lighting-mark image in [0, 1].
+        extra_inputs: names of optional channels (the network's ``config.extra_inputs``).
+        falloff: (B, 1, H, W) the flash's falloff (``flash_falloff``), for ``shading``.
+
+    Returns:
+        (B, 9 + 3 len(extra_inputs), H, W).
+    """
+    photo = photo.clamp(0.0, 1.0)
+    base = torch.cat([photo, log_compress(photo), mark], dim=1) * 2.0 - 1.0
+    if not extra_inputs:
+        return base
+    return torch.cat([base, extra_input_channels(photo, tuple(extra_inputs), falloff)], dim=1)
+
+
+def encode_inputs(photos: torch.Tensor, lights: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG,
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0,
+                  extra_inputs: tuple[str, ...] = ()) -> torch.Tensor:
+    """The network input of photos (B, 3, H, W) taken under flashes at ``lights`` (B, 3): their
+    lighting marks (and flash falloffs, for ``shading``) rendered and ``network_input`` built.
+    Training and capture both call this."""
+    height, width = photos.shape[-2:]
+    mark = lighting_mark(lights, height, width, fov, convention, extent)
+    falloff = flash_falloff(lights, height, width, fov, convention, extent) if "shading" in extra_inputs else None
+    return network_input(photos, mark, tuple(extra_inputs), falloff)
