@@ -22,9 +22,9 @@ import mideepbasis  # noqa: F401
 import torch
 from common import RESULTS, write_report
 
-from mideepbasis.evaluate import (PAPER_DEEPBASIS, RERENDER_COUNT, EvaluationConfig, _resize_maps, load_evaluation_set,
-                                  random_lights_and_views, run_evaluation, score, summary_scores,
-                                  trivial_baseline)
+from mideepbasis.evaluation import (PAPER_DEEPBASIS, RERENDER_COUNT, EvaluationConfig, load_evaluation_set,
+                                    random_lights_and_views, resize_maps, run_evaluation, score, summary_scores,
+                                    trivial_baseline)
 from mideepbasis.train import TrainConfig, train
 
 HERE = Path(__file__).parent
@@ -51,7 +51,7 @@ NOTES_MARKER = "<!-- notes kept by ablations.py -->"
 def trivial_row(size: int, convention: str = "physical") -> dict:
     """The trivial baseline (flat normal, the set's mean maps) scored as the variants are."""
     _, truth, _ = load_evaluation_set(SHARED_TEST, "deschaintre5")
-    truth = torch.stack([_resize_maps(m, size) for m in truth])
+    truth = torch.stack([resize_maps(m, size) for m in truth])
     lights, views = random_lights_and_views(RERENDER_COUNT, EvaluationConfig(data="").seed)
     metrics = score(trivial_baseline(truth).expand_as(truth), truth, lights, views, convention, None)
     return {**summary_scores({key: float(value.mean()) for key, value in metrics.items()}), "train_seconds": 0.0}

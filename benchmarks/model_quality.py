@@ -23,7 +23,7 @@ from common import RESULTS, write_report
 
 from mideepbasis.capture import network_resolution_limit, predict
 from mideepbasis.data.datasets import DeschaintreDataset
-from mideepbasis.evaluate import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
+from mideepbasis.evaluation import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
 from mideepbasis.model.checkpoint import load_model, shipped_model_path
 
 SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"

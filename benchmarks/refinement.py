@@ -25,8 +25,8 @@ from common import RESULTS, write_report
 from tqdm import tqdm
 
 from mideepbasis.capture import Capturer, Photo, RefineConfig
-from mideepbasis.evaluate import (EvaluationConfig, evaluation_offsets, flash_photos, load_evaluation_set,
-                                  random_lights_and_views, score, summary_scores)
+from mideepbasis.evaluation import (EvaluationConfig, evaluation_offsets, flash_photos, load_evaluation_set,
+                                    random_lights_and_views, score, summary_scores)
 from mideepbasis.render import render_flash
 
 SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"

@@ -25,7 +25,7 @@ from tqdm import tqdm
 from mideepbasis.capture import CaptureConfig, Capturer, Photo, SearchConfig
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import sample_offsets
-from mideepbasis.evaluate import ROUGHNESS_GROUPS, flash_photos, light_error_deg
+from mideepbasis.evaluation import ROUGHNESS_GROUPS, flash_photos, light_error_deg
 from mideepbasis.model.checkpoint import load_model
 
 #: First seed of the held-out materials. Training draws 63-bit hashes of (run seed, index) as

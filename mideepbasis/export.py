@@ -23,7 +23,6 @@ Files of a capture folder:
 from __future__ import annotations
 
 import base64
-import html
 import json
 import math
 import os
@@ -34,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import constants, geometry
+from . import constants
 from .errors import InputError
 from .imageio import linear_to_srgb, write_bytes, write_image
 
@@ -267,15 +266,3 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return out
-
-
-def light_diagram_points(fov: float, offset: tuple[float, float]) -> dict:
-    """The reachable offsets' radius and the estimate, for the report's light diagram [deg]."""
-    height = constants.camera_height(fov)
-    return {"radius_deg": constants.MAX_OFFSET_DEG,
-            "estimate_deg": [math.degrees(math.atan(t / height)) for t in offset],
-            "max_offset": geometry.max_offset(fov)}
-
-
-def report_table(rows: dict) -> str:
-    return "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows.items())

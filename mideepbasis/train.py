@@ -682,7 +682,7 @@ class Trainer:
     def _validation_rerender_rmse(self, predicted: torch.Tensor, maps: torch.Tensor, count: int = 8) -> float:
         """Mean RMSE of clipped sRGB re-renderings under ``count`` seeded lights and views (the
         evaluation's metric, on the validation materials)."""
-        from .evaluate import random_lights_and_views, rerender_rmse
+        from .evaluation import random_lights_and_views, rerender_rmse
         from .render import render_backend
 
         lights, views = random_lights_and_views(count, seed=0)

@@ -16,7 +16,7 @@ from PIL import Image
 from mideepbasis import cli, constants
 from mideepbasis.capture import (CaptureConfig, Capturer, Photo, RefineConfig, SearchConfig, capture,
                                  field_of_view_from_focal, load_photo, predict, refine_global_bases)
-from mideepbasis.evaluate import flash_photos, light_error_deg
+from mideepbasis.evaluation import flash_photos, light_error_deg
 from mideepbasis.export import save_capture
 from mideepbasis.imageio import write_image
 from mideepbasis.material import Material

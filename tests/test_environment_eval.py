@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from mideepbasis.environment_eval import (EnvironmentProtocol, EnvironmentRenderer, binned, masked_metrics,
-                                          parse_environments, spearman, to_display)
+from mideepbasis.evaluation.environment import (EnvironmentProtocol, EnvironmentRenderer, binned, masked_metrics,
+                                                parse_environments, spearman, to_display)
 from mideepbasis.errors import InputError
 
 from .helpers import directional_albedo
-from mideepbasis.evaluate import EvaluationConfig, run_evaluation
+from mideepbasis.evaluation import EvaluationConfig, run_evaluation
 
 #: Tolerances of the Monte Carlo checks.
 TOLERANCES = {

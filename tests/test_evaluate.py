@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from mideepbasis.evaluate import (EvaluationConfig, light_error_deg, map_rmse, random_lights_and_views, rerender_rmse,
-                                  run_evaluation, ssim, trivial_baseline)
+from mideepbasis.evaluation import (EvaluationConfig, light_error_deg, map_rmse, random_lights_and_views, rerender_rmse,
+                                    run_evaluation, ssim, trivial_baseline)
 
 
 def flat(size=16, diffuse=0.5, roughness=0.4, specular=0.04):
@@ -80,7 +80,7 @@ def test_evaluation_is_seeded_and_skips_a_corrupt_material(evaluation_dataset, t
         assert (tmp_path / "a" / name).is_file(), name
     written = json.loads((tmp_path / "a" / "summary.json").read_text())
     # LPIPS is computed only where its weights are on this machine (nothing is downloaded); the note says which.
-    from mideepbasis.evaluate import LPIPS
+    from mideepbasis.evaluation import LPIPS
 
     if LPIPS.weight_files()[2] is None:
         assert isinstance(written["render_lpips"], float) and written["render_lpips"] >= 0
@@ -91,7 +91,7 @@ def test_evaluation_is_seeded_and_skips_a_corrupt_material(evaluation_dataset, t
 
 def test_lpips_plumbing_with_a_seeded_backbone_of_alexnets_shapes(tmp_path):
     # The real weights are never downloaded; random ones of the same shapes test the loading and the formula.
-    from mideepbasis.evaluate import LPIPS
+    from mideepbasis.evaluation import LPIPS
 
     torch.manual_seed(0)
     shapes = {"features.0": (64, 3, 11, 11), "features.3": (192, 64, 5, 5), "features.6": (384, 192, 3, 3),
@@ -116,7 +116,7 @@ def test_lpips_plumbing_with_a_seeded_backbone_of_alexnets_shapes(tmp_path):
 
 
 def test_strips_with_inward_normals_are_repaired_for_rendering_and_compared_as_stored(tmp_path):
-    from mideepbasis.evaluate import load_evaluation_materials
+    from mideepbasis.evaluation import load_evaluation_materials
     from mideepbasis.imageio import write_image
     from mideepbasis.material import REPAIRED_NORMAL_Z, Material, MaterialError
 

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from . import constants
+from .. import constants
+from .metrics import ssim_map
 
 #: Metrics of an environment comparison, each over the pixels that see the sample.
 METRICS = ("rmse", "flip", "ssim")
@@ -72,8 +73,8 @@ class EnvironmentProtocol:
 
 def parse_environments(text: str) -> tuple[str, ...]:
     """``studio,sunsky,FILE.exr`` -> names, checked: a clear error for an unknown name or missing file."""
-    from .errors import InputError
-    from .render.scenes import environment_part
+    from ..errors import InputError
+    from ..render.scenes import environment_part
 
     names = tuple(name.strip() for name in text.split(",") if name.strip())
     if not names:
@@ -102,7 +103,7 @@ class EnvironmentRenderer:
     """
 
     def __init__(self, protocol: EnvironmentProtocol, convention: str = constants.DEFAULT_CONVENTION):
-        from .render.scenes import preview_scene
+        from ..render.scenes import preview_scene
 
         self.protocol = protocol
         placeholder = torch.zeros(10, 4, 4)
@@ -117,7 +118,7 @@ class EnvironmentRenderer:
         import drjit as dr
         import mitsuba as mi
 
-        from .render.scenes import set_material
+        from ..render.scenes import set_material
 
         scene = self.scenes[(environment, view)]
         set_material(scene, maps)
@@ -129,7 +130,7 @@ class EnvironmentRenderer:
 
 def to_display(radiance: np.ndarray) -> np.ndarray:
     """Clipped, sRGB-encoded (H, W, 3) in [0, 1]."""
-    from .imageio import linear_to_srgb
+    from ..imageio import linear_to_srgb
 
     return np.asarray(linear_to_srgb(np.clip(radiance, 0.0, 1.0)), dtype=np.float32)
 
@@ -157,8 +158,6 @@ def masked_metrics(reference: np.ndarray, test: np.ndarray, mask: np.ndarray) ->
     the mask is cropped alike.
     """
     import flip_evaluator
-
-    from .evaluate import ssim_map
 
     if not mask.any():
         raise ValueError("no pixel of the render sees the sample")

@@ -1,0 +1,283 @@
+"""The evaluation run (``mideepbasis evaluate``): the model's (and the baselines') predictions on a
+dataset under the protocol (``protocol``), scored (``metrics``), written by ``reporting.write_evaluation``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import constants
+from .metrics import LPIPS, light_error_deg, map_rmse, rerender_rmse, score, summary_scores, trivial_baseline
+from .protocol import (RERENDER_COUNT, ROUGHNESS_GROUPS, evaluation_offsets, flash_photos, load_evaluation_materials,
+                       random_lights_and_views, resize_maps)
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """An evaluation run (``mideepbasis evaluate``)."""
+
+    data: str
+    """Dataset path [folder]."""
+
+    format: str = "deschaintre5"
+    """``deschaintre5``, ``deschaintre4`` (strips) or ``folder`` (material folders or PBR maps)."""
+
+    out: str = "evaluation"
+    """Output folder."""
+
+    model: str | None = None
+    """Checkpoint of the model (None: the shipped one)."""
+
+    light: str = "known"
+    """``known``: the model is given the offset; ``search``: it finds it."""
+
+    refine_steps: int = 0
+    """Refinement steps of the model's row (the paper: 500)."""
+
+    refine_normals: bool = False
+    """Whether the refinement may turn the global bases' normals (the paper's refinement)."""
+
+    network_resolution: int | None = None
+    """Largest resolution the network runs at [pixels] (None: the model's training resolution; 0: no
+    limit), as in ``capture``."""
+
+    baselines: bool = False
+    """Add the trivial, direct (``direct_model``), unrefined and refined rows."""
+
+    direct_model: str | None = None
+    """Checkpoint of the direct per-pixel network (the no-bases ablation) for ``baselines``."""
+
+    lighting: bool = False
+    """Also measure the lighting search's accuracy and the robustness to the offset."""
+
+    seed: int = 0
+    """Seed of the offsets and of the re-rendering lights and views."""
+
+    fov: float = constants.DEFAULT_FOV_DEG
+    """Field of view of the re-rendered inputs [deg]."""
+
+    limit: int | None = None
+    """Evaluate only the first this many materials (quick runs)."""
+
+    resolution: int | None = None
+    """Resample the materials to this size first [pixels] (None: as stored)."""
+
+    environment: tuple[str, ...] = ()
+    """Also compare path-traced renders under these environments (``studio``, ``sunsky``,
+    ``uniform``, EXR/HDR files; ``evaluation.environment``); empty: not at all."""
+
+    environment_spp: int | None = None
+    """Samples per pixel of the environment renders (None: the protocol's)."""
+
+    environment_resolution: int | None = None
+    """Size of the environment renders [pixels] (None: the protocol's)."""
+
+
+def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine_steps: int,
+                 progress: bool, label: str, refine_normals: bool = False, network_resolution: int | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+    """Predictions (N, 10, H, W) without and (when ``refine_steps``) with refinement, from one search
+    and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
+    import time
+
+    from tqdm import tqdm
+
+    from ..capture import CaptureConfig, Capturer, Photo, RefineConfig
+
+    convention = model.config.convention
+    capturer = Capturer(model, CaptureConfig(fov=fov, network_resolution=network_resolution,
+                                             refine=RefineConfig(steps=refine_steps, normals=refine_normals)))
+    plain, refined_maps, details = [], [], []
+    for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
+        started = time.perf_counter()
+        photos, _ = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention,
+                                 model.config.plane_extent)
+        photo = Photo(photos[0], fov, "argument")
+        if light == "search":
+            found = capturer.search(photo)
+            offset, history = found.offset, found.history
+        else:
+            offset, history = offsets[index], []
+        output = capturer.predict(photo, offset)
+        plain.append(output.maps.cpu())
+        seconds = time.perf_counter() - started
+        refine_seconds = 0.0
+        if refine_steps and output.weights is not None:
+            started = time.perf_counter()
+            refined, _ = capturer.refine(output, photo, offset)
+            refined_maps.append(refined.maps.cpu())
+            refine_seconds = time.perf_counter() - started
+        details.append({"light_error_deg": light_error_deg(torch.as_tensor(offset).tolist(), offsets[index].tolist(), fov),
+                        "search_passes": len(history), "seconds": seconds, "refine_seconds": refine_seconds})
+    return torch.cat(plain), (torch.cat(refined_maps) if refined_maps else None), details
+
+
+def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
+    """Evaluate a model (and baselines) on a dataset; writes OUT and returns the summary."""
+    import time
+
+    from ..capture import CaptureConfig
+    from ..model.checkpoint import load_model
+    from ..reporting import write_evaluation
+
+    started = time.perf_counter()
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    materials = load_evaluation_materials(config.data, config.format)
+    names, truth, stored, skipped = materials.names, materials.maps, materials.stored, materials.skipped
+    repaired = materials.repaired_pixels
+    if config.limit:
+        names, truth, stored, repaired = names[:config.limit], truth[:config.limit], stored[:config.limit], repaired[:config.limit]
+    if config.resolution and config.resolution != truth.shape[-1]:
+        truth = torch.stack([resize_maps(m, config.resolution) for m in truth])
+        stored = torch.stack([resize_maps(m, config.resolution) for m in stored])
+    model = load_model(config.model)
+    # Load the direct baseline now, so a wrong path fails before minutes of predictions.
+    direct = load_model(config.direct_model) if config.baselines and config.direct_model else None
+    convention = model.config.convention
+    offsets = evaluation_offsets(len(truth), config.seed, config.fov)
+    lights, views = random_lights_and_views(RERENDER_COUNT, config.seed)
+    weights = LPIPS.weight_files()
+    lpips = LPIPS(weights[0], weights[1]) if weights[2] is None else None
+    notes = [weights[2]] if weights[2] else []
+
+    rows: dict[str, dict] = {}
+    per_material: dict[str, dict] = {}
+    predictions = {}
+    steps = config.refine_steps or (CaptureConfig().refine.steps if config.baselines else 0)
+    plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model",
+                                           config.refine_normals, config.network_resolution)
+    light_error = float(np.mean([d["light_error_deg"] for d in details]))
+    seconds = float(sum(d["seconds"] for d in details))
+    kept = "" if config.refine_normals else ", normals kept"
+    unrefined_row, refined_row = "model (no refinement)", f"model + refinement ({steps} steps{kept})"
+    if refined is None or config.baselines:
+        predictions[unrefined_row] = plain
+        rows[unrefined_row] = {"seconds": seconds, "light_error_deg": light_error}
+    if refined is not None:
+        predictions[refined_row] = refined
+        rows[refined_row] = {"seconds": seconds + float(sum(d["refine_seconds"] for d in details)),
+                             "light_error_deg": light_error}
+    main_row = refined_row if config.refine_steps else unrefined_row
+    for row, predicted in predictions.items():
+        per_material[row] = score(predicted, truth, lights, views, convention, lpips, cross_check=row == main_row,
+                                  stored=stored)
+    if config.baselines:
+        predictions["trivial"] = trivial_baseline(truth).expand_as(truth)
+        per_material["trivial"] = score(predictions["trivial"], truth, lights, views, convention, lpips, stored=stored)
+        rows["trivial"] = {"seconds": 0.0}
+        if direct is not None:
+            start = time.perf_counter()
+            predictions["direct (no bases)"], _, _ = _predict_all(direct, truth, offsets, config.fov, "known", 0, progress,
+                                                                  "direct", network_resolution=config.network_resolution)
+            rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
+            per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention,
+                                                      lpips, stored=stored)
+        else:
+            notes.append("the direct per-pixel baseline needs --direct-model (a checkpoint trained with --no-bases)")
+    for row, metrics in per_material.items():
+        rows[row].update({key: float(value.mean()) for key, value in metrics.items()})
+
+    main = rows[main_row]
+    if any(repaired):
+        notes.append(f"{sum(1 for r in repaired if r)} materials store {sum(repaired)} normals pointing into the "
+                     "surface: repaired for rendering, compared as stored")
+    summary = {"n_materials": len(truth), "skipped": skipped,
+               "repaired_normal_pixels": int(sum(repaired)),
+               "materials_with_repaired_normals": int(sum(1 for r in repaired if r)),
+               "data": str(config.data), "format": config.format,
+               "resolution": truth.shape[-1],
+               "model": config.model or "shipped", "convention": convention, "light": config.light,
+               "refine_steps": config.refine_steps, "refine_normals": config.refine_normals,
+               "network_resolution": config.network_resolution, "row": main_row,
+               **summary_scores(main), "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),
+               "light_error_deg": main.get("light_error_deg"), "rows": rows, "notes": notes, "seed": config.seed}
+    environment_scores = None
+    if config.environment:
+        environment_scores = _evaluate_environments(config, summary, predictions, truth, per_material, main_row,
+                                                    convention, progress)
+    if config.lighting:
+        summary["lighting"] = lighting_accuracy(model, truth, config, out, progress)
+    summary["seconds"] = time.perf_counter() - started
+    write_evaluation(out, summary, names, per_material, predictions, truth, main_row, environment_scores)
+    return summary
+
+
+def _evaluate_environments(config: EvaluationConfig, summary: dict, predictions: dict, truth: torch.Tensor,
+                           per_material: dict, main_row: str, convention: str, progress: bool):
+    """Path-traced comparisons of every row under the environments, into ``summary``."""
+    import dataclasses
+    import time
+
+    from .environment import EnvironmentProtocol, environment_summary, evaluate_environments
+
+    started = time.perf_counter()
+    protocol = EnvironmentProtocol(environments=tuple(config.environment), seed=config.seed, floor_seed=config.seed + 1)
+    overrides = {"spp": config.environment_spp, "resolution": config.environment_resolution}
+    protocol = dataclasses.replace(protocol, **{k: v for k, v in overrides.items() if v})
+    # predictions holds the trivial baseline (and the other baselines) under --baselines only.
+    scores = evaluate_environments(dict(predictions), truth, protocol, convention, progress)
+    result = environment_summary(scores, main_row, per_material[main_row]["render_rmse"].numpy(), protocol)
+    summary["env"] = result["environments"]
+    summary["env_protocol"] = {**result["protocol"], "seconds": time.perf_counter() - started}
+    return scores
+
+
+def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out: Path, progress: bool,
+                      offsets_per_material: int = 10, angles: int = 7) -> dict:
+    """The search's angular error by roughness group, and map and re-rendering RMSE against the offset angle."""
+    from tqdm import tqdm
+
+    from ..capture import CaptureConfig, Capturer, Photo
+    from ..data.synth import sample_offsets
+
+    convention = model.config.convention
+    capturer = Capturer(model, CaptureConfig(fov=config.fov, network_resolution=config.network_resolution))
+    errors = {group: [] for group in ROUGHNESS_GROUPS}
+    for index in tqdm(range(len(truth)), desc="lighting search", unit="material", disable=not progress):
+        roughness = float(truth[index, 6].mean())
+        group = next(g for g, bound in ROUGHNESS_GROUPS.items() if roughness < bound)
+        offsets = sample_offsets(offsets_per_material, torch.Generator().manual_seed(config.seed + 1000 + index), config.fov)
+        for offset in offsets:
+            photos, _ = flash_photos(truth[index:index + 1], offset.view(1, 2), config.fov, convention,
+                                     model.config.plane_extent)
+            found = capturer.search(Photo(photos[0], config.fov, "argument")).offset
+            errors[group].append(light_error_deg(found, offset.tolist(), config.fov))
+    table = {group: {"count": len(v), "mean_deg": float(np.mean(v)) if v else None,
+                     "median_deg": float(np.median(v)) if v else None,
+                     "p90_deg": float(np.percentile(v, 90)) if v else None} for group, v in errors.items()}
+    everything = sum(errors.values(), [])
+    table["all"] = {"count": len(everything), "mean_deg": float(np.mean(everything)),
+                    "median_deg": float(np.median(everything)), "p90_deg": float(np.percentile(everything, 90))}
+
+    generator = torch.Generator().manual_seed(config.seed + 7)
+    directions = torch.rand(len(truth), generator=generator) * 2 * math.pi
+    height = constants.camera_height(config.fov)
+    lights, views = random_lights_and_views(RERENDER_COUNT, config.seed)
+    robustness = []
+    for angle in tqdm(np.linspace(0.0, constants.MAX_OFFSET_DEG, angles), desc="robustness", disable=not progress):
+        radius = height * math.tan(math.radians(float(angle)))
+        offsets = torch.stack([radius * torch.cos(directions), radius * torch.sin(directions)], -1)
+        maps_rmse, render_rmse = [], []
+        for index in range(len(truth)):
+            photos, _ = flash_photos(truth[index:index + 1], offsets[index:index + 1], config.fov, convention,
+                                               model.config.plane_extent)
+            photo = Photo(photos[0], config.fov, "argument")
+            found = capturer.search(photo).offset if config.light == "search" else offsets[index]
+            predicted = capturer.predict(photo, found).maps.cpu()
+            rmse = map_rmse(predicted, truth[index:index + 1])
+            maps_rmse.append(float(sum(v[0] for v in rmse.values()) / 4))
+            render_rmse.append(float(rerender_rmse(predicted, truth[index:index + 1], lights, views, convention)[0]))
+        robustness.append({"angle_deg": float(angle), "maps_rmse_mean": float(np.mean(maps_rmse)),
+                           "render_rmse": float(np.mean(render_rmse))})
+
+    from ..reporting import lighting_figure
+
+    lighting_figure(errors, robustness, config.light, out / "lighting.png")
+    return {"search_error_by_roughness": table, "robustness": robustness, "figure": "lighting.png",
+            "offsets_per_material": offsets_per_material}
