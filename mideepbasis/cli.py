@@ -132,6 +132,8 @@ def _add_capture(subparsers) -> None:
                         help="times the maps repeat across the sphere and cloth previews")
     parser.add_argument("--viewer-screenshot", action="store_true",
                         help="also write viewer.png: report.html as headless Chromium shows it (needs chromium)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="worker processes for several photos (default: one per core); each loads the model once")
     parser.add_argument("--truth", type=Path, default=None, metavar="MATERIAL",
                         help="a material folder of the photographed surface: also render it in the environment "
                              "(environment_truth.png, environment_difference.png); one photo only")
@@ -149,8 +151,6 @@ def _photos(paths: list[Path]) -> list[Path]:
 
 
 def _run_capture(args) -> int:
-    from tqdm import tqdm
-
     from .capture import CaptureConfig, Capturer, RefineConfig
     from .export import check_output, save_capture
 
@@ -169,29 +169,42 @@ def _run_capture(args) -> int:
     config = CaptureConfig(fov=args.fov, light=args.light, resolution=args.resolution,
                            refine=RefineConfig(steps=args.refine_steps, normals=args.refine_normals),
                            network_resolution=args.network_resolution, tileable=args.tileable, crop=args.crop)
-    capturer = Capturer(args.model, config)
-    failures = []
-    for photo in tqdm(photos, desc="capturing", unit="photo", disable=single):
-        target = args.output if single else args.output / photo.stem
-        try:
-            result = capturer.capture(photo, progress=single)
-            save_capture(result, target, exr=args.exr, overwrite=args.overwrite or not single, progress=single,
-                         truth=truth, preview_tiles=args.preview_tiles)
-            if args.viewer_screenshot:
-                _viewer_screenshot(target)
-        except MideepbasisError as error:
-            if single:
-                raise
-            failures.append((photo, str(error)))
-            tqdm.write(f"mideepbasis: skipped {photo}: {error}")
-            continue
-        for note in result.notes:
-            tqdm.write(f"mideepbasis: note: {photo.name}: {note}")
-        tqdm.write(f"{photo.name}: flash offset {result.offset_angle_deg:.1f} deg, "
-                   f"{sum(result.timings.values()):.1f} s -> {target}")
     if not single:
-        print(f"captured {len(photos) - len(failures)} of {len(photos)} photos into {args.output}"
-              + (f"; {len(failures)} failed" if failures else ""))
+        return _capture_batch(photos, args, config)
+    capturer = Capturer(args.model, config)
+    result = capturer.capture(photos[0], progress=True)
+    save_capture(result, args.output, exr=args.exr, overwrite=args.overwrite, progress=True, truth=truth,
+                 preview_tiles=args.preview_tiles)
+    if args.viewer_screenshot:
+        _viewer_screenshot(args.output)
+    for note in result.notes:
+        print(f"mideepbasis: note: {photos[0].name}: {note}")
+    print(f"{photos[0].name}: flash offset {result.offset_angle_deg:.1f} deg, "
+          f"{sum(result.timings.values()):.1f} s -> {args.output}")
+    return 0
+
+
+def _capture_batch(photos: list[Path], args, config) -> int:
+    """Several photos: worker processes (``capture.batch``), one line per photo as it completes."""
+    from tqdm import tqdm
+
+    from .capture.batch import SaveOptions, capture_batch
+
+    failures = 0
+    options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles)
+    items = capture_batch(photos, args.output, args.model, config, options, args.workers)
+    for item in tqdm(items, total=len(photos), desc="capturing", unit="photo"):
+        if item.error is not None:
+            failures += 1
+            tqdm.write(f"mideepbasis: skipped {item.photo}: {item.error}")
+            continue
+        if args.viewer_screenshot:
+            _viewer_screenshot(item.target)
+        for note in item.notes:
+            tqdm.write(f"mideepbasis: note: {item.photo.name}: {note}")
+        tqdm.write(f"{item.photo.name}: flash offset {item.offset_angle_deg:.1f} deg, {item.seconds:.1f} s -> {item.target}")
+    print(f"captured {len(photos) - failures} of {len(photos)} photos into {args.output}"
+          + (f"; {failures} failed" if failures else ""))
     return 1 if failures else 0
 
 
@@ -221,7 +234,7 @@ def _run_demo(args) -> None:
     import torch
 
     from .capture import capture
-    from .evaluate import light_error_deg, map_rmse
+    from .evaluation import light_error_deg, map_rmse
     from .export import check_output, save_capture
     from .material import Material
     from .render.api import example_capture_dir
@@ -302,8 +315,8 @@ def _add_evaluate(subparsers) -> None:
 
 
 def _run_evaluate(args) -> None:
-    from .environment_eval import parse_environments
-    from .evaluate import EvaluationConfig, run_evaluation
+    from .evaluation import EvaluationConfig, run_evaluation
+    from .evaluation.environment import parse_environments
 
     if not args.data.is_dir():
         raise InputError(f"{args.data}: no such dataset folder")

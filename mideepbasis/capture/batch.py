@@ -1,0 +1,135 @@
+"""Many photos at once: worker processes that each load the model once and capture and write
+their share of the photos, so that one photo's writing (the path-traced previews, the report)
+overlaps with another's search and refinement.
+
+Each worker runs torch on one thread, one worker per core: on two cores two photos are in
+flight at any time. A photo that fails with a ``MideepbasisError`` (unreadable, too small, ...)
+costs only its own line; the others go on.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+#: The worker's state: set once per process by ``_start_worker``.
+_WORKER: dict = {}
+
+
+@dataclass(frozen=True)
+class SaveOptions:
+    """What ``export.save_capture`` writes for each photo of a batch."""
+
+    exr: bool = False
+    """Also write the maps as linear EXR."""
+
+    preview_tiles: float = 2.0
+    """Times the maps repeat across the sphere and cloth previews."""
+
+    overwrite: bool = True
+    """Replace a photo's existing output folder (a batch's folders are its own)."""
+
+
+@dataclass(frozen=True)
+class BatchItem:
+    """The outcome of one photo of a batch."""
+
+    photo: Path
+    """The photo file."""
+
+    target: Path
+    """Its material folder."""
+
+    error: str | None = None
+    """Why it failed (None: it did not)."""
+
+    offset_angle_deg: float = 0.0
+    """The flash offset found [deg]."""
+
+    seconds: float = 0.0
+    """Capture and writing, in its worker [s]."""
+
+    notes: list[str] = field(default_factory=list)
+    """The capture's notes."""
+
+
+def default_workers(photos: int) -> int:
+    """One worker per core, at most one per photo."""
+    return max(1, min(photos, os.cpu_count() or 1))
+
+
+def _start_worker(model, config, options: SaveOptions) -> None:
+    import torch
+
+    from .pipeline import Capturer
+
+    # One core each for torch: the workers, not the threads inside them, share the machine.
+    # (drjit keeps its pool: Mitsuba's path tracer waits forever on a pool of one thread.)
+    torch.set_num_threads(1)
+    _WORKER["capturer"] = Capturer(model, config)
+    _WORKER["options"] = options
+
+
+def _capture_one(photo: Path, target: Path) -> BatchItem:
+    from ..errors import MideepbasisError
+    from ..export import save_capture
+
+    started = time.perf_counter()
+    options = _WORKER["options"]
+    try:
+        result = _WORKER["capturer"].capture(photo)
+        save_capture(result, target, exr=options.exr, overwrite=options.overwrite,
+                     preview_tiles=options.preview_tiles)
+    except MideepbasisError as error:
+        return BatchItem(photo, target, error=str(error))
+    return BatchItem(photo, target, offset_angle_deg=result.offset_angle_deg,
+                     seconds=time.perf_counter() - started, notes=list(result.notes))
+
+
+def capture_batch(photos: list[Path], out: Path, model=None, config=None, options: SaveOptions = SaveOptions(),
+                  workers: int | None = None) -> Iterator[BatchItem]:
+    """Capture every photo into ``out/<photo stem>/``; yields each outcome as it completes.
+
+    Args:
+        photos: the photo files.
+        out: the folder that receives one material folder per photo.
+        model: a checkpoint path, or None for the shipped model (each worker loads it once).
+        config: the ``CaptureConfig`` of every capture (None: the defaults).
+        options: what is written per photo.
+        workers: worker processes (None: one per core, at most one per photo).
+    """
+    import multiprocessing
+
+    from .pipeline import CaptureConfig
+
+    config = config or CaptureConfig()
+    workers = workers or default_workers(len(photos))
+    model = str(model) if model is not None else None
+    # spawn, not fork: drjit's and torch's thread pools do not survive a fork.
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_start_worker,
+                             initargs=(model, config, options)) as pool:
+        # At most two photos queued per worker: results come back in order of completion.
+        queue = iter(photos)
+        running = set()
+
+        def submit() -> bool:
+            photo = next(queue, None)
+            if photo is None:
+                return False
+            running.add(pool.submit(_capture_one, photo, out / photo.stem))
+            return True
+
+        for _ in range(2 * workers):
+            if not submit():
+                break
+        while running:
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                running.discard(future)
+                submit()
+                yield future.result()
