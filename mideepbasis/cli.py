@@ -2,6 +2,7 @@
 
     mideepbasis capture PHOTO [PHOTO ...] -o OUT [--fov DEG] [--light TX,TY] [--refine-steps 125]
                         [--refine-normals] [--resolution N|native] [--model PATH] [--exr] [--overwrite]
+                        [--workers N] [every other CaptureConfig field: --search-grid, --refine-lr, ...]
     mideepbasis render MATERIAL_DIR -o OUT.exr [--light flash|env] [--fov 45] [--offset TX,TY]
                        [--spp N] [--convention physical|deepbasis] [--env studio|sunsky|FILE]
     mideepbasis demo [-o OUT_DIR]
@@ -9,12 +10,14 @@
     mideepbasis evaluate --data PATH --format deschaintre5|deschaintre4|folder [--model PATH]
                          [--light known|search] [--refine-steps K] [--refine-normals] [--baselines] [--lighting] -o OUT
     mideepbasis import-weights GLOBAL.pth LOCAL.pth --fov 45 -o model.safetensors
-    mideepbasis train --preset compact --data procedural [--data FOLDER ...] --steps N --batch B --out runs/NAME [--resume]
+    mideepbasis train --out runs/NAME [--resume] [--preset compact] [--data procedural,FOLDER] [--steps N]
+                      [every other TrainConfig field: --batch, --network-num-bases, --synthesis-fov, ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import warnings
 from pathlib import Path
@@ -29,16 +32,6 @@ def _offset(text: str) -> tuple[float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"offset must be TX,TY in patch half-widths, got {text!r}") from None
     return tx, ty
-
-
-def _crop(text: str) -> tuple[int, int, int, int]:
-    try:
-        values = tuple(int(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 4:
-        raise argparse.ArgumentTypeError(f"expected X,Y,W,H in pixels (four integers), got {text!r}")
-    return values
 
 
 def _positive_int(text: str) -> int:
@@ -87,51 +80,32 @@ def _run_render(args) -> None:
     print(f"wrote {exr} and {png}")
 
 
-def _resolution(text: str) -> int | str:
-    if text == "native":
-        return text
-    value = _positive_int(text)
-    if value < 64:
-        raise argparse.ArgumentTypeError(f"resolution must be at least 64 pixels, got {value}")
-    return value
-
-
 #: Photo suffixes a folder given to ``capture`` is searched for.
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".heic", ".heif", ".exr")
 
 
 def _add_capture(subparsers) -> None:
     from .capture import CaptureConfig
+    from .configs import add_config_arguments
 
-    defaults = CaptureConfig()
     parser = subparsers.add_parser(
         "capture", help="capture materials from flash photos",
         description="Photo to material: lighting search, DeepBasis prediction, refinement of the global bases. "
                     "One photo writes the material folder into OUT; several (or a folder) write OUT/<photo name>/ each.")
     parser.add_argument("photos", type=Path, nargs="+", metavar="PHOTO", help="JPEG, PNG or EXR flash photos, or folders of them")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
-    parser.add_argument("--fov", type=float, default=None, help="field of view of the photo's width [deg] (default: EXIF, else 45)")
-    parser.add_argument("--light", type=_offset, default=None, metavar="TX,TY",
-                        help="known flash offset [patch half-widths]: skips the lighting search")
-    parser.add_argument("--refine-steps", type=int, default=defaults.refine.steps, help="0 turns refinement off")
-    parser.add_argument("--refine-normals", action="store_true",
-                        help="let the refinement turn the global bases' normals too (the paper's refinement)")
-    parser.add_argument("--resolution", type=_resolution, default=defaults.resolution, metavar="N|native",
-                        help="working resolution [pixels], or native (up to 2048)")
-    parser.add_argument("--network-resolution", type=int, default=None, metavar="N",
-                        help="largest resolution the network runs at [pixels] (default: the model's training "
-                             "resolution; 0: the working resolution)")
+    # Every CaptureConfig field is an option (--refine-steps, --search-grid, ...), documented by the field.
+    add_config_arguments(parser, CaptureConfig)
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
-    parser.add_argument("--crop", type=_crop, default=None, metavar="X,Y,W,H",
-                        help="the part of the photo that holds the sample [pixels of the photo as shown]")
-    parser.add_argument("--tileable", action="store_true",
-                        help="make the maps wrap around their edges without a seam (the report shows a 3x3 tiling)")
     parser.add_argument("--preview-tiles", type=float, default=2.0,
                         help="times the maps repeat across the sphere and cloth previews")
     parser.add_argument("--viewer-screenshot", action="store_true",
                         help="also write viewer.png: report.html as headless Chromium shows it (needs chromium)")
+    parser.add_argument("--shape-previews", action=argparse.BooleanOptionalAction, default=None,
+                        help="path trace the material on a sphere and a draped cloth too (default: for one photo, "
+                             "not for several)")
     parser.add_argument("--workers", type=int, default=None,
                         help="worker processes for several photos (default: one per core); each loads the model once")
     parser.add_argument("--truth", type=Path, default=None, metavar="MATERIAL",
@@ -151,7 +125,8 @@ def _photos(paths: list[Path]) -> list[Path]:
 
 
 def _run_capture(args) -> int:
-    from .capture import CaptureConfig, Capturer, RefineConfig
+    from .capture import CaptureConfig, Capturer
+    from .configs import config_from_arguments
     from .export import check_output, save_capture
 
     photos = _photos(args.photos)
@@ -166,15 +141,13 @@ def _run_capture(args) -> int:
         if not single:
             raise InputError("--truth compares one capture with its true material: give one photo")
         truth = Material.load(args.truth)
-    config = CaptureConfig(fov=args.fov, light=args.light, resolution=args.resolution,
-                           refine=RefineConfig(steps=args.refine_steps, normals=args.refine_normals),
-                           network_resolution=args.network_resolution, tileable=args.tileable, crop=args.crop)
+    config = config_from_arguments(CaptureConfig, args)
     if not single:
         return _capture_batch(photos, args, config)
     capturer = Capturer(args.model, config)
     result = capturer.capture(photos[0], progress=True)
     save_capture(result, args.output, exr=args.exr, overwrite=args.overwrite, progress=True, truth=truth,
-                 preview_tiles=args.preview_tiles)
+                 preview_tiles=args.preview_tiles, shape_previews=args.shape_previews is not False)
     if args.viewer_screenshot:
         _viewer_screenshot(args.output)
     for note in result.notes:
@@ -191,7 +164,7 @@ def _capture_batch(photos: list[Path], args, config) -> int:
     from .capture.batch import SaveOptions, capture_batch
 
     failures = 0
-    options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles)
+    options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles, shape_previews=bool(args.shape_previews))
     items = capture_batch(photos, args.output, args.model, config, options, args.workers)
     for item in tqdm(items, total=len(photos), desc="capturing", unit="photo"):
         if item.error is not None:
@@ -359,88 +332,44 @@ def _run_import_weights(args) -> None:
 
 
 def _add_train(subparsers) -> None:
+    from .configs import add_config_arguments
+    from .model.network import PRESETS
     from .train import TrainConfig
 
-    defaults = TrainConfig()
     parser = subparsers.add_parser("train", help="train DeepBasisNet on synthesised flash photos",
                                    description="Train DeepBasisNet (L_sup + 0.05 L_vc). Launch under torchrun for "
-                                               "several processes; --resume continues a killed run exactly.")
-    parser.add_argument("--preset", choices=["compact", "paper", "tiny"], default=defaults.preset)
-    parser.add_argument("--data", action="append", default=None, metavar="procedural|FOLDER",
-                        help="material source, repeatable (default: procedural)")
-    parser.add_argument("--steps", type=_positive_int, default=defaults.steps)
-    parser.add_argument("--batch", type=_positive_int, default=defaults.batch, help="materials per step and process")
-    parser.add_argument("--size", type=_positive_int, default=defaults.size, help="training resolution [pixels]")
-    parser.add_argument("--lr", type=float, default=defaults.lr)
-    parser.add_argument("--local-lr", type=float, default=defaults.local_lr)
-    parser.add_argument("--vc-weight", type=float, default=defaults.vc_weight, help="0 turns the VC loss off")
-    parser.add_argument("--normal-weight", type=float, default=defaults.normal_weight,
-                        help="weight of the normal channels in the supervised L1 (1: the paper's)")
-    parser.add_argument("--saturation-weight", type=float, default=defaults.saturation_weight,
-                        help="weight of the penalty on saturated blending-weight outputs (0: the paper's loss)")
-    parser.add_argument("--bases", type=_positive_int, default=None, help="number N of basis materials")
-    parser.add_argument("--no-local", action="store_true", help="ablation: no local bases")
-    parser.add_argument("--no-global", action="store_true", help="ablation: no global bases")
-    parser.add_argument("--no-bases", action="store_true", help="ablation: direct per-pixel prediction")
-    parser.add_argument("--extra-inputs", default="", metavar="shading,highpass",
-                        help="optional input channels that make the shading explicit (with --init from a 9-channel "
-                             "model, their weights start at zero)")
-    parser.add_argument("--seed", type=int, default=defaults.seed)
-    parser.add_argument("--workers", type=int, default=defaults.workers, help="material-generating worker processes")
-    parser.add_argument("--checkpoint-minutes", type=float, default=defaults.checkpoint_minutes)
-    parser.add_argument("--validate-every", type=int, default=defaults.validate_every)
-    parser.add_argument("--log-every", type=_positive_int, default=defaults.log_every)
-    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default=defaults.device)
-    parser.add_argument("--out", type=Path, required=True, metavar="runs/NAME")
+                                               "several processes; --resume continues a killed run exactly, with "
+                                               "its stored settings (options given must agree with them).")
+    parser.add_argument("--out", type=Path, required=True, metavar="runs/NAME", help="output folder of the run")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
-    parser.add_argument("--init", type=Path, default=None, metavar="MODEL.safetensors",
-                        help="start from these weights (fine-tuning); optimiser and schedule start afresh")
-    parser.add_argument("--render-weight", type=float, default=defaults.render_weight,
-                        help="weight of the log-space re-rendering loss under random lights and views (0: off)")
-    parser.add_argument("--render-lights", type=_positive_int, default=defaults.render_lights,
-                        help="light-and-view pairs per material of the re-rendering loss")
-    parser.add_argument("--render-backend", choices=["mitsuba", "torch"], default=defaults.render_backend,
-                        help="renderer of photos and losses (torch: a machine without Mitsuba)")
-    parser.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the network")
-    parser.add_argument("--grad-clip", type=float, default=defaults.grad_clip, help="largest gradient norm (0: off)")
-    parser.add_argument("--warmup-steps", type=int, default=defaults.warmup_steps, help="linear learning-rate warm-up")
-    parser.add_argument("--validation-count", type=_positive_int, default=defaults.validation_count,
-                        help="held-out procedural materials per validation")
-    parser.add_argument("--max-minutes", type=float, default=defaults.max_minutes,
-                        help="stop after this much wall time [minutes] with a checkpoint (0: no limit)")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default=argparse.SUPPRESS,
+                        help="network preset the --network-* settings start from (default: compact)")
+    # Every other TrainConfig field is an option (--steps, --network-num-bases, --synthesis-read-noise, ...).
+    add_config_arguments(parser, TrainConfig, skip={"out", "preset", "synthesis.convention"})
     parser.set_defaults(run=_run_train)
 
 
 def _run_train(args) -> None:
+    from .configs import config_from_arguments
+    from .model.checkpoint import read_checkpoint
     from .train import TrainConfig, train
 
-    network = {}
-    if args.bases:
-        network["num_bases"] = args.bases
-    for flag, key in (("no_local", "use_local"), ("no_global", "use_global"), ("no_bases", "use_bases")):
-        if getattr(args, flag):
-            network[key] = False
-    extra = tuple(name.strip() for name in args.extra_inputs.split(",") if name.strip())
-    if extra:
-        from .model.inputs import EXTRA_INPUTS
-
-        unknown = sorted(set(extra) - set(EXTRA_INPUTS))
-        if unknown:
-            raise InputError(f"--extra-inputs: unknown {unknown}; expected some of {list(EXTRA_INPUTS)}")
-        network.update(extra_inputs=extra, input_channels=9 + 3 * len(extra))
-    config = TrainConfig(out=str(args.out), preset=args.preset, network=network, data=tuple(args.data or ["procedural"]),
-                         steps=args.steps, batch=args.batch, size=args.size, lr=args.lr, local_lr=args.local_lr,
-                         vc_weight=args.vc_weight, normal_weight=args.normal_weight,
-                         saturation_weight=args.saturation_weight, seed=args.seed, workers=args.workers,
-                         checkpoint_minutes=args.checkpoint_minutes, validate_every=args.validate_every,
-                         log_every=args.log_every, device=args.device,
-                         init=str(args.init) if args.init else None, render_weight=args.render_weight,
-                         render_lights=args.render_lights, render_backend=args.render_backend, bf16=args.bf16,
-                         grad_clip=args.grad_clip, warmup_steps=args.warmup_steps,
-                         validation_count=args.validation_count, max_minutes=args.max_minutes)
-    if not args.resume and (args.out / "checkpoint.safetensors").exists():
-        raise InputError(f"{args.out} already holds a run: pass --resume to continue it or choose another --out")
-    path = train(config, resume=args.resume)
+    checkpoint = args.out / "checkpoint.safetensors"
+    if args.resume:
+        # The run's own settings; the options given replace them (and must agree where it matters).
+        document, _ = read_checkpoint(checkpoint)
+        base = TrainConfig.from_dict(document["training"]["config"], str(checkpoint))
+        if "preset" in args and args.preset != base.preset:
+            raise InputError(f"{checkpoint}: this run was started with preset = {base.preset!r}, not {args.preset!r}")
+    else:
+        if checkpoint.exists():
+            raise InputError(f"{args.out} already holds a run: pass --resume to continue it or choose another --out")
+        base = TrainConfig(preset=getattr(args, "preset", TrainConfig.preset))
+    try:
+        config = config_from_arguments(TrainConfig, args, base)
+    except (ValueError, TypeError) as error:
+        raise InputError(f"train: {error}") from None
+    path = train(dataclasses.replace(config, out=str(args.out)), resume=args.resume)
     if path.exists():
         print(f"wrote {path}")
     else:

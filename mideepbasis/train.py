@@ -25,7 +25,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +34,11 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from . import constants
+from .configs import differences
 from .data.synth import SynthesisConfig, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
-from .model.network import DeepBasisNet, DeepBasisOutput, preset, to_signed
+from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, to_signed
 
 
 @dataclass
@@ -48,10 +49,11 @@ class TrainConfig:
     """Output folder of the run [path]."""
 
     preset: str = "compact"
-    """Network preset: ``compact``, ``paper`` or ``tiny`` (tests)."""
+    """Network preset the network's settings start from: ``compact``, ``paper`` or ``tiny`` (tests)."""
 
-    network: dict = field(default_factory=dict)
-    """Overrides of the preset's NetworkConfig fields (ablations: use_local, use_global, use_bases, num_bases)."""
+    network: NetworkConfig | dict | None = None
+    """The network (None: the preset's; a dict: fields of the preset's replaced, e.g. the ablations'
+    use_local, use_global, use_bases, num_bases). Stored resolved."""
 
     data: tuple[str, ...] = ("procedural",)
     """Material sources: ``procedural`` and/or folders (material folders, PBR folders, Deschaintre strips)."""
@@ -107,8 +109,9 @@ class TrainConfig:
     device: str = "auto"
     """``auto`` (CUDA when available), ``cpu`` or ``cuda``."""
 
-    synthesis: dict = field(default_factory=dict)
-    """Overrides of the SynthesisConfig fields (noise, exposure, field of view, ...)."""
+    synthesis: SynthesisConfig | dict | None = None
+    """How the training photos are made (None: the defaults; a dict: fields replaced). Its shading
+    convention is always the network's. Stored resolved."""
 
     init: str | None = None
     """Start from the weights of this checkpoint (same network configuration), e.g. to fine-tune
@@ -144,6 +147,40 @@ class TrainConfig:
     max_minutes: float = 0.0
     """Stop after this much training wall time in this process [minutes], with a resumable
     checkpoint (0: no limit); the schedule still runs to ``steps``."""
+
+    def __post_init__(self):
+        # Resolve the network and the synthesis now, so that what is stored is what ran.
+        if self.network is None or isinstance(self.network, dict):
+            overrides = {key: tuple(value) if isinstance(value, list) else value
+                         for key, value in (self.network or {}).items() if key != "input_channels"}
+            self.network = preset(self.preset, **overrides)
+        synthesis = self.synthesis
+        if synthesis is None or isinstance(synthesis, dict):
+            synthesis = SynthesisConfig(**{key: tuple(value) if isinstance(value, list) else value
+                                           for key, value in (synthesis or {}).items()})
+        self.synthesis = dataclasses.replace(synthesis, convention=self.network.convention)
+        self.data = tuple(self.data)
+
+    @classmethod
+    def from_dict(cls, values: dict, source: str = "checkpoint") -> TrainConfig:
+        """The config a checkpoint stores (older checkpoints store the network and the synthesis as
+        overrides of the preset's and the defaults: they resolve to the same config)."""
+        from .model.checkpoint import network_config_from_dict
+
+        values = dict(values)
+        network = values.get("network")
+        if isinstance(network, dict) and "encoder_channels" in network:
+            values["network"] = network_config_from_dict(network, source)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise InputError(f"{source}: unknown training settings {unknown}")
+        return cls(**{key: tuple(value) if key == "data" else value for key, value in values.items()})
+
+
+#: Settings a resumed run may change: where and how it runs, not what it learns.
+RESUMABLE_CHANGES = frozenset({"out", "workers", "checkpoint_minutes", "log_every", "validate_every", "device",
+                               "max_minutes", "render_backend"})
 
 
 # --- data --------------------------------------------------------------------------------------
@@ -407,12 +444,11 @@ class Trainer:
         self.out = Path(config.out)
         self.progress = progress and self.rank == 0
         torch.manual_seed(config.seed)
-        network_config = preset(config.preset, **{k: tuple(v) if isinstance(v, list) else v
-                                                 for k, v in config.network.items()})
+        network_config = config.network
         if config.size % network_config.stride:
             raise InputError(f"training size {config.size} is not a multiple of the {config.preset} network's "
                              f"stride {network_config.stride}")
-        self.synthesis = SynthesisConfig(**{**config.synthesis, "convention": network_config.convention})
+        self.synthesis = config.synthesis
         from .render import set_render_backend
 
         set_render_backend(config.render_backend)
@@ -449,8 +485,7 @@ class Trainer:
 
         source = load_model(path)
         config = self.model.config
-        same_but_inputs = replace(source.config, extra_inputs=config.extra_inputs,
-                                  input_channels=config.input_channels) == config
+        same_but_inputs = replace(source.config, extra_inputs=config.extra_inputs) == config
         if source.config != config and not same_but_inputs:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} preset)")
         state = source.state_dict()
@@ -464,6 +499,13 @@ class Trainer:
         state = document.get("training_state")
         if state is None:
             raise InputError(f"{path}: has no training state to resume from")
+        stored = TrainConfig.from_dict(document["training"]["config"], str(path))
+        changed = differences(stored, self.config, ignore=RESUMABLE_CHANGES)
+        if changed:
+            name, before, now = changed[0]
+            raise InputError(f"{path}: this run was started with {name} = {before!r}, not {now!r} "
+                             f"({len(changed)} setting(s) differ); resume with the run's settings, or start a "
+                             "new run with --init")
         weights = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
         self.model.load_state_dict(weights)
         _restore_optimizer(self.optimizer, self.parameter_names, tensors, state["optimizer_steps"])

@@ -27,8 +27,8 @@ VARIANTS = {
     "render1": ["--render-weight", "1"],
     "render3": ["--render-weight", "3"],
     # Issue 11 section 1: input channels that make the shading explicit (widened from a 9-channel --init).
-    "shading": ["--render-weight", "0", "--extra-inputs", "shading"],
-    "shading_highpass": ["--render-weight", "0", "--extra-inputs", "shading,highpass"],
+    "shading": ["--render-weight", "0", "--network-extra-inputs", "shading"],
+    "shading_highpass": ["--render-weight", "0", "--network-extra-inputs", "shading,highpass"],
 }
 
 COMMON = ["--preset", "compact", "--data", "procedural", "--render-backend", "torch", "--bf16",

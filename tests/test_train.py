@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -112,6 +113,44 @@ def test_resume_after_an_interrupt_gives_the_same_weights(tmp_path):
         assert torch.equal(a[name], b[name]), name
     document, _ = read_checkpoint(tmp_path / "b" / "run" / "checkpoint.safetensors")
     assert document["training_state"]["step"] == 4
+
+
+def test_checkpoints_store_the_resolved_config_and_a_resume_must_agree_with_it(tmp_path):
+    from mideepbasis.errors import InputError
+    from mideepbasis.model.network import preset
+
+    run = Trainer(tiny_config(tmp_path, steps=4, network={"num_bases": 3}), progress=False)
+    run.run(stop_at=2)
+    path = tmp_path / "run" / "checkpoint.safetensors"
+    document, _ = read_checkpoint(path)
+    stored = document["training"]["config"]
+    # Resolved: the whole network and synthesis, not the overrides given, the photos' convention the network's.
+    assert stored["network"] == {**json.loads(json.dumps(dataclasses.asdict(preset("tiny")))), "num_bases": 3}
+    assert stored["synthesis"]["convention"] == stored["network"]["convention"] == "physical"
+    assert TrainConfig.from_dict(stored) == run.config
+    # Where the run is written and how often may change; what it learns may not, and the error names it.
+    Trainer(tiny_config(tmp_path, steps=4, network={"num_bases": 3}, workers=1, log_every=5), resume=True,
+            progress=False)
+    with pytest.raises(InputError, match=r"checkpoint.safetensors: this run was started with lr = 0.003, not 0.01"):
+        Trainer(tiny_config(tmp_path, steps=4, network={"num_bases": 3}, lr=1e-2), resume=True, progress=False)
+    with pytest.raises(InputError, match=r"started with network.num_bases = 3, not 10"):
+        Trainer(tiny_config(tmp_path, steps=4), resume=True, progress=False)
+
+
+def test_the_command_line_resumes_with_the_stored_settings(tmp_path):
+    from mideepbasis import cli
+
+    out = tmp_path / "cli"
+    common = ["train", "--out", str(out), "--preset", "tiny", "--batch", "1", "--size", "32", "--workers", "0",
+              "--validate-every", "0", "--log-every", "1", "--network-num-bases", "2", "--synthesis-read-noise",
+              "1e-4,2e-4"]
+    assert cli.main(common + ["--steps", "2", "--max-minutes", "1e-9"]) == 0
+    # Only how long it may run is given: everything else is the run's own.
+    assert cli.main(["train", "--out", str(out), "--resume", "--max-minutes", "0"]) == 0
+    document, _ = read_checkpoint(out / "model.safetensors")
+    config = document["training"]["config"]
+    assert (config["steps"], config["network"]["num_bases"], config["synthesis"]["read_noise"]) == (2, 2, [1e-4, 2e-4])
+    assert cli.main(["train", "--out", str(out), "--resume", "--steps", "3"]) == 2
 
 
 def test_two_processes_under_torchrun(tmp_path):
@@ -230,7 +269,7 @@ def test_widened_inputs_start_as_the_narrow_network():
 
     torch.manual_seed(0)
     narrow = DeepBasisNet(preset("tiny")).eval()
-    wide = DeepBasisNet(preset("tiny", extra_inputs=("shading", "highpass"), input_channels=15)).eval()
+    wide = DeepBasisNet(preset("tiny", extra_inputs=("shading", "highpass"))).eval()
     wide.load_state_dict(widen_inputs(narrow.state_dict(), wide.state_dict(), 9))
     inputs = torch.rand(2, 9, 32, 32) * 2 - 1
     lights = torch.tensor([[0.1, 0.0, 2.4], [0.0, -0.2, 2.4]])
@@ -239,5 +278,7 @@ def test_widened_inputs_start_as_the_narrow_network():
         a = narrow(inputs, lights, ).maps
         b = wide(torch.cat([inputs, extra], 1), lights).maps
     torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
-    with pytest.raises(ValueError, match="9 \\+ 3 per extra input"):
-        DeepBasisNet(preset("tiny", extra_inputs=("shading",)))
+    # The input width follows from the optional inputs; an unknown one is refused by name.
+    assert preset("tiny", extra_inputs=("shading",)).input_channels == 12
+    with pytest.raises(ValueError, match="unknown extra inputs \\['shadow'\\]"):
+        preset("tiny", extra_inputs=("shadow",))

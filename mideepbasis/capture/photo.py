@@ -118,6 +118,16 @@ def _checked_crop(path: Path, crop, width: int, height: int) -> tuple[int, int, 
     return x, y, w, h
 
 
+def parse_resolution(text: str) -> int | str:
+    """A working resolution from its text: ``native``, or pixels (at least ``MIN_PHOTO_SIZE``)."""
+    if text == "native":
+        return text
+    value = int(text)
+    if value < MIN_PHOTO_SIZE:
+        raise ValueError(f"the resolution must be native or at least {MIN_PHOTO_SIZE} pixels, got {value}")
+    return value
+
+
 def working_resolution(side: int, resolution: int | str) -> int:
     """The side [pixels] a photo of ``side`` pixels is resampled to for ``resolution`` (pixels or ``native``)."""
     if resolution == "native":

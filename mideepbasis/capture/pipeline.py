@@ -24,7 +24,7 @@ from .. import constants, geometry
 from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
-from .photo import load_photo
+from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
 
@@ -36,10 +36,11 @@ class CaptureConfig:
     fov: float | None = None
     """Field of view of the photo's width [deg]; None: from EXIF, else the model's, else 45."""
 
-    light: tuple[float, float] | None = None
+    light: tuple[float, float] | None = field(default=None, metadata={"metavar": "TX,TY"})
     """Known flash offset (tx, ty) [patch half-widths]; None: search for it."""
 
-    resolution: int | str = constants.DEFAULT_RESOLUTION
+    resolution: int | str = field(default=constants.DEFAULT_RESOLUTION,
+                                  metadata={"parse": parse_resolution, "metavar": "N|native"})
     """Working resolution [pixels], or ``native`` (the photo's own, up to 2048)."""
 
     network_resolution: int | None = None
@@ -56,7 +57,7 @@ class CaptureConfig:
     tileable: bool = False
     """Make the captured maps wrap around their edges without a seam (``tiling.make_tileable``)."""
 
-    crop: tuple[int, int, int, int] | None = None
+    crop: tuple[int, int, int, int] | None = field(default=None, metadata={"metavar": "X,Y,W,H"})
     """Part of the photo that holds the sample: (x, y, width, height) [pixels of the photo as
     shown, EXIF orientation applied]; its centre square is used. None: the whole photo."""
 

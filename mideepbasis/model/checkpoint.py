@@ -47,11 +47,18 @@ def network_config_to_dict(config: NetworkConfig) -> dict:
 
 def network_config_from_dict(values: dict, source: str = "checkpoint") -> NetworkConfig:
     fields = {f.name: f for f in dataclasses.fields(NetworkConfig)}
+    values = dict(values)
+    # Older checkpoints store the input width, which the optional inputs now determine.
+    stored_inputs = values.pop("input_channels", None)
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise CheckpointError(f"{source}: unknown network settings {unknown}")
     converted = {key: tuple(value) if isinstance(value, list) else value for key, value in values.items()}
-    return NetworkConfig(**converted)
+    config = NetworkConfig(**converted)
+    if stored_inputs is not None and stored_inputs != config.input_channels:
+        raise CheckpointError(f"{source}: input_channels {stored_inputs} does not match the optional inputs "
+                              f"{list(config.extra_inputs)} ({config.input_channels} channels)")
+    return config
 
 
 def save_checkpoint(path: str | os.PathLike, model: torch.nn.Module, metadata: dict | None = None,

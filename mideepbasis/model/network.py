@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .. import constants
-from .inputs import BASE_CHANNELS, CHANNELS_PER_EXTRA, ModelInfo, decode_photo, input_channels
+from .inputs import EXTRA_INPUTS, ModelInfo, decode_photo, input_channels
 from .nafnet import NAFNet
 
 
@@ -82,9 +82,6 @@ class NetworkConfig:
     convention: str = constants.DEFAULT_CONVENTION
     """Shading convention of the error-map render (and of the training renders)."""
 
-    input_channels: int = BASE_CHANNELS
-    """Channels of the network input: 9, plus 3 per entry of ``extra_inputs``."""
-
     extra_inputs: tuple[str, ...] = ()
     """Optional input channels that make the shading explicit, after the 9 of DESIGN section 1:
     ``shading`` and/or ``highpass`` (``model.inputs.EXTRA_INPUTS``)."""
@@ -92,6 +89,16 @@ class NetworkConfig:
     plane_extent: float = 1.0
     """Half-width of the sample the camera frames [patch half-widths] for the error map's render:
     1 in this project; 384 / 383 for the authors' networks, whose pixels sit 3 / 383 apart."""
+
+    def __post_init__(self):
+        unknown = sorted(set(self.extra_inputs) - set(EXTRA_INPUTS))
+        if unknown:
+            raise ValueError(f"unknown extra inputs {unknown}; expected some of {list(EXTRA_INPUTS)}")
+
+    @property
+    def input_channels(self) -> int:
+        """Channels of the network input: 9, plus 3 per entry of ``extra_inputs``."""
+        return input_channels(self.extra_inputs)
 
     @property
     def stride(self) -> int:
@@ -250,21 +257,32 @@ def mlp(in_features: int, width: int, hidden_layers: int, out_features: int) -> 
 # --- the network -------------------------------------------------------------------------------------
 
 
-def compose_bases(weights: torch.Tensor, global_bases: torch.Tensor, deviations: torch.Tensor | None = None
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
+def compose_bases(weights: torch.Tensor, global_bases: torch.Tensor, deviations: torch.Tensor | None = None,
+                  keep_bases: bool = True) -> tuple[torch.Tensor | None, torch.Tensor]:
     """The two-level basis model: bases = unit-normal(global + deviation), blended by the weights.
 
     Args:
         weights: (B, N, H, W); global_bases: (B, N, 10) signed space; deviations: (B, N, 10, H, W)
             signed space, or None for the global bases alone.
+        keep_bases: return the per-pixel bases (training needs them); False builds one basis at a
+            time (the same arithmetic, so the same blend) and never holds all N: at 1024 x 1024 that
+            is 400 MB fewer.
 
     Returns:
-        (bases (B, N, 10, H, W) or, without deviations, (B, N, 10); the blend (B, 10, H, W), signed space).
+        (bases (B, N, 10, H, W) or, without deviations, (B, N, 10), or None when not kept; the blend
+        (B, 10, H, W), signed space).
     """
     if deviations is None:
         return global_bases, blend(weights, global_bases)
-    bases = global_bases.to(device=deviations.device)[..., None, None] + deviations
-    bases = normalize_basis_normals(bases, dim=2).clamp(-1.0, 1.0)
+    global_bases = global_bases.to(device=deviations.device)
+    if not keep_bases:
+        total = None
+        for weight, base, deviation in zip(weights.unbind(1), global_bases.unbind(1), deviations.unbind(1)):
+            basis = normalize_basis_normals(base[..., None, None] + deviation, dim=1).clamp(-1.0, 1.0)
+            term = weight.unsqueeze(1) * basis
+            total = term if total is None else total + term
+        return None, total
+    bases = normalize_basis_normals(global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
     return bases, blend(weights, bases)
 
 
@@ -304,9 +322,10 @@ class DeepBasisOutput:
 
     @classmethod
     def from_bases(cls, weights: torch.Tensor, global_bases: torch.Tensor, deviations: torch.Tensor | None = None,
-                   **fields) -> DeepBasisOutput:
-        """The output of the basis model with these weights, global bases and local deviations."""
-        bases, signed = compose_bases(weights, global_bases, deviations)
+                   keep_bases: bool = True, **fields) -> DeepBasisOutput:
+        """The output of the basis model with these weights, global bases and local deviations
+        (``keep_bases``: also the per-pixel bases, which only training uses)."""
+        bases, signed = compose_bases(weights, global_bases, deviations, keep_bases)
         return cls(maps=to_maps(signed), weights=weights, global_bases=global_bases,
                    bases=bases if deviations is not None else None, deviations=deviations, signed=signed, **fields)
 
@@ -316,7 +335,7 @@ class DeepBasisOutput:
         if self.weights is None:
             raise ValueError("an output without bases (a direct network's) has no global bases to replace")
         return DeepBasisOutput.from_bases(self.weights, global_bases.to(self.weights), self.deviations,
-                                          error=self.error, extras=self.extras)
+                                          keep_bases=False, error=self.error, extras=self.extras)
 
     def crop(self, height: int, width: int) -> DeepBasisOutput:
         """The top-left height x width pixels of every per-pixel tensor."""
@@ -339,6 +358,7 @@ class DeepBasisOutput:
             return DeepBasisOutput(maps=to_maps(signed), signed=signed)
         return DeepBasisOutput.from_bases(upsample(self.weights), self.global_bases,
                                           upsample(self.deviations) if self.deviations is not None else None,
+                                          keep_bases=False,
                                           error=upsample(self.error) if self.error is not None else None)
 
     def split(self, batch: int) -> tuple[DeepBasisOutput, DeepBasisOutput]:
@@ -360,9 +380,6 @@ class DeepBasisNet(nn.Module):
     def __init__(self, config: NetworkConfig = PRESETS["compact"]):
         super().__init__()
         self.config = config
-        if config.input_channels != input_channels(config.extra_inputs):
-            raise ValueError(f"input_channels must be {BASE_CHANNELS} + {CHANNELS_PER_EXTRA} per extra input ({list(config.extra_inputs)}), "
-                             f"got {config.input_channels}")
         if len(config.decoder_channels) != len(config.encoder_channels) - 1:
             raise ValueError("decoder_channels needs one entry fewer than encoder_channels (the last level outputs the weights)")
         # How the network must be run; ``load_model`` replaces it with what its checkpoint records.
