@@ -11,7 +11,10 @@ reports the median wall time of the repeats [s]:
 - ``search_refine``: lighting search, prediction and the default refinement (125 steps, normals kept);
 - ``search_refine_paper``: the same with the paper's refinement (500 steps, normals refined too);
 - ``command``: the whole ``mideepbasis capture`` command, start-up and all outputs included;
-- ``search_refine_1024``: as ``search_refine`` with the photo processed at 1024x1024.
+- ``search_refine_1024``: as ``search_refine`` with the photo processed at 1024x1024;
+- ``batch`` (``--batch N``, default 50): ``mideepbasis capture FOLDER -o OUT`` on N procedural
+  flash photos at 256x256 (seeded, made first; 8-bit JPEG): the whole command's wall time, the
+  photos per second after the first (from the moment each photo's line is printed), peak memory.
 
 The command's runs happen in a child process of their own too, so the peak memory reported for
 them (``RUSAGE_CHILDREN``: the largest of a process's children) is theirs alone.
@@ -83,11 +86,60 @@ def measure_command(model: str | None, repeats: int) -> dict:
     return {"median_s": statistics.median(runs), "runs_s": [round(r, 3) for r in runs], "peak_memory_mib": peak}
 
 
+def make_batch_photos(folder: Path, count: int, seed: int = 5) -> list[Path]:
+    """``count`` flash photos (256x256 JPEG) of held-out procedural materials under seeded hand-held offsets."""
+    import torch
+
+    from mideepbasis import geometry
+    from mideepbasis.data.procedural import GeneratorConfig, generate
+    from mideepbasis.data.synth import SynthesisConfig, sample_offsets, simulate_photo
+    from mideepbasis.imageio import write_image
+    from mideepbasis.render import render_flash
+
+    generator = torch.Generator().manual_seed(seed)
+    paths = []
+    for index in range(count):
+        maps = generate(2_000_000 + index, config=GeneratorConfig(size=256)).to_tensor()[None]
+        lights = geometry.light_positions(sample_offsets(1, generator)).view(1, 1, 3)
+        photo = simulate_photo(render_flash(maps, lights)[:, 0], generator, SynthesisConfig())
+        paths.append(write_image(folder / f"shot_{index:03d}.jpg", photo[0].permute(1, 2, 0).numpy(), encode_srgb=True))
+    return paths
+
+
+def measure_batch(model: str | None, count: int, extra: list[str]) -> dict:
+    """Times ``capture FOLDER`` on ``count`` photos: wall, photos per second after the first, peak memory."""
+    import os
+
+    with tempfile.TemporaryDirectory() as folder:
+        shots = Path(folder) / "shots"
+        shots.mkdir()
+        make_batch_photos(shots, count)
+        command = [sys.executable, "-m", "mideepbasis.cli", "capture", str(shots), "-o", str(Path(folder) / "out"), *extra]
+        if model:
+            command += ["--model", model]
+        start = time.perf_counter()
+        done = []
+        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                              env={**os.environ, "PYTHONUNBUFFERED": "1"}) as process:
+            for line in process.stdout:
+                if ": flash offset " in line:
+                    done.append(time.perf_counter() - start)
+        wall = time.perf_counter() - start
+        if process.returncode != 0 or len(done) != count:
+            raise SystemExit(f"batch capture failed ({len(done)} of {count} photos)")
+    rate = (count - 1) / (done[-1] - done[0]) if count > 1 else float("nan")
+    return {"photos": count, "options": extra, "median_s": wall, "first_photo_s": round(done[0], 2),
+            "photos_per_second_after_first": round(rate, 3),
+            "peak_memory_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--batch", type=int, default=50, help="photos of the batch measurement (0: skip it)")
+    parser.add_argument("--only", nargs="+", default=None, help="measure only these (names above, batch, batch_shapes)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "capture.json")
     args = parser.parse_args()
     if args.child:
@@ -96,7 +148,15 @@ def main() -> None:
         return
 
     results = {}
-    for name in [*CONFIGURATIONS, "command"]:
+    names = [*CONFIGURATIONS, "command"] + (["batch", "batch_shapes"] if args.batch else [])
+    for name in args.only or names:
+        if name.startswith("batch"):
+            extra = ["--shape-previews"] if name == "batch_shapes" else []
+            results[name] = measure_batch(args.model, args.batch, extra)
+            print(f"{name:20s} {results[name]['median_s']:.1f} s for {args.batch} photos, "
+                  f"{results[name]['photos_per_second_after_first']:.2f} photos/s after the first "
+                  f"(target 1), peak {results[name]['peak_memory_mib']:.0f} MiB")
+            continue
         repeats = args.repeats if "1024" not in name else max(2, args.repeats // 2)
         command = [sys.executable, __file__, "--child", name, "--repeats", str(repeats)]
         if args.model:
@@ -105,8 +165,10 @@ def main() -> None:
         results[name] = json.loads(output.strip().splitlines()[-1])
         print(f"{name:20s} {results[name]['median_s']:.2f} s (target {TARGETS_S[name]} s), "
               f"peak {results[name]['peak_memory_mib']:.0f} MiB, stages {results[name].get('stages_median_s', '-')}")
+    if args.only and args.output.exists():  # a partial run updates the measurements it made
+        results = {**json.loads(args.output.read_text()).get("results", {}), **results}
     write_report(args.output, "capture", {"photo": "bundled example (512x512 JPEG)", "targets_s": TARGETS_S,
-                                          "results": results})
+                                          "batch_photos": args.batch, "results": results})
 
 
 if __name__ == "__main__":

@@ -195,9 +195,10 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
             "re-rendering RMSE (linear)": f"{rerender_rmse:.4f}",
             **{f"time: {stage} [s]": f"{seconds:.2f}" for stage, seconds in result.timings.items()}}
     notes = "".join(f"<li>{html.escape(note)}</li>" for note in result.notes) or "<li>none</li>"
+    names = ("photo", "normal", "diffuse", "roughness", "specular", "rerender", "error", "environment",
+             "preview_sphere", "preview_cloth")
     images = "".join(f'<figure><img src="{name}.png" width="256"><figcaption>{name}</figcaption></figure>'
-                     for name in ("photo", "normal", "diffuse", "roughness", "specular", "rerender", "error", "environment",
-                                  "preview_sphere", "preview_cloth"))
+                     for name in names if (Path(folder) / f"{name}.png").is_file())
     from .viewer import viewer_section, viewer_size
 
     viewer = viewer_section(Path(folder), tuple(result.light_position.tolist()), result.fov,

@@ -33,6 +33,9 @@ class SaveOptions:
     overwrite: bool = True
     """Replace a photo's existing output folder (a batch's folders are its own)."""
 
+    shape_previews: bool = False
+    """Also path trace the sphere and cloth previews (two more images per photo: off in a batch)."""
+
 
 @dataclass(frozen=True)
 class BatchItem:
@@ -83,7 +86,7 @@ def _capture_one(photo: Path, target: Path) -> BatchItem:
     try:
         result = _WORKER["capturer"].capture(photo)
         save_capture(result, target, exr=options.exr, overwrite=options.overwrite,
-                     preview_tiles=options.preview_tiles)
+                     preview_tiles=options.preview_tiles, shape_previews=options.shape_previews)
     except MideepbasisError as error:
         return BatchItem(photo, target, error=str(error))
     return BatchItem(photo, target, offset_angle_deg=result.offset_angle_deg,

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from .. import constants
-from ..model.network import DeepBasisOutput, compose_bases, to_maps
+from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps
 from .search import downsample
 
 
@@ -117,6 +117,19 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     def masked(free: torch.Tensor) -> torch.Tensor:
         return predicted + (free - predicted) * movable
 
+    if config.normals:
+        def blended(current: torch.Tensor) -> torch.Tensor:
+            return compose_bases(weights, current, deviations)[1]
+    else:
+        # The normals stay as predicted: blend them once; each step blends the other seven channels
+        # only (channel by channel the same arithmetic as the whole blend, so the same result).
+        normals = compose_bases(weights, predicted, deviations)[1][:, constants.NORMAL]
+        reflectance = deviations[:, :, constants.REFLECTANCE]
+
+        def blended(current: torch.Tensor) -> torch.Tensor:
+            bases = (current[:, :, constants.REFLECTANCE, None, None] + reflectance).clamp(-1.0, 1.0)
+            return torch.cat([normals, blend(weights, bases)], dim=1)
+
     optimizer = SmallAdam(global_bases, lr=config.lr)
     losses = []
     # The tensors here are small: waking torch's worker threads for every op costs more than it saves.
@@ -125,7 +138,7 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     try:
         for _ in tqdm(range(config.steps), desc="refining", unit="step", disable=not progress):
             current = masked(global_bases)
-            maps = to_maps(compose_bases(weights, current, deviations)[1])
+            maps = to_maps(blended(current))
             rendered = render_flash(maps, lights, fov=fov, convention=convention, extent=extent)[:, 0].clamp(0.0, 1.0)
             loss = (rendered - target).abs().mean()
             if config.prior:
