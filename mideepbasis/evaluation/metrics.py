@@ -56,8 +56,9 @@ def rerender(maps: torch.Tensor, lights: torch.Tensor, views: torch.Tensor, conv
              backend: str = "mitsuba") -> torch.Tensor:
     """Clipped, sRGB-encoded renders of (B, 10, H, W) maps under (K, 3) lights and views -> (B, K, 3, H, W).
 
-    ``physical``: the light's intensity is pi d^2 for its mean distance d to the sample centre, so
-    a white Lambertian facing it renders to about 1. ``deepbasis``: their unit lamp without falloff.
+    ``physical``: one intensity for all K lights, pi times the mean over the lights of their squared
+    distance to the sample centre, so a white Lambertian facing a light renders to about 1.
+    ``deepbasis``: their unit lamp without falloff.
     """
     from ..render import render_flash
 
