@@ -60,7 +60,7 @@ def _add_render(subparsers) -> None:
     parser.add_argument("--resolution", type=_positive_int, default=None,
                         help="image size [pixels] (default: the material's for flash, 256 for env)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the path tracer")
-    parser.add_argument("--shape", choices=["plane", "sphere", "cloth"], default="plane",
+    parser.add_argument("--shape", choices=constants.PREVIEW_SHAPES, default="plane",
                         help="object of --light env: the sample on a table, a ball, or a cloth draped over one")
     parser.add_argument("--tiles", type=float, default=2.0, help="times the maps repeat across a sphere or cloth")
     parser.set_defaults(run=_run_render)

@@ -91,6 +91,9 @@ VC_LOSS_WEIGHT = 0.05
 
 # --- rendering -----------------------------------------------------------------------------------
 
+#: Objects a material can be previewed on: the sample on a table, a ball, a cloth draped over one.
+PREVIEW_SHAPES = ("plane", "sphere", "cloth")
+
 #: Samples per pixel of path-traced previews.
 DEFAULT_SPP = 64
 

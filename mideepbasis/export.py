@@ -128,11 +128,8 @@ def gltf_material(material, folder: Path, name: str = "captured material") -> di
     zeros = torch.zeros_like(metallic)
     write_image(folder / "base_color.png", _hwc(base), encode_srgb=True)
     write_image(folder / "metallic_roughness.png", _hwc(torch.cat([zeros, roughness, metallic])))
-    # Dielectric F0 = 0.04 x specularColorFactor x texture: the texture holds F0 / (0.04 x factor).
-    specular = material.specular * (1 - metallic) + constants.DIELECTRIC_F0 * metallic
-    factor = max(1.0, float(specular.max()) / constants.DIELECTRIC_F0)
-    write_image(folder / "specular_color.png", _hwc((specular / (constants.DIELECTRIC_F0 * factor)).clamp(0, 1)),
-                encode_srgb=True)
+    texture, factor = specular_color(material, pbr)
+    write_image(folder / "specular_color.png", _hwc(texture), encode_srgb=True)
 
     positions = [(-1.0, 0.0, 1.0), (1.0, 0.0, 1.0), (1.0, 0.0, -1.0), (-1.0, 0.0, -1.0)]
     normals = [(0.0, 1.0, 0.0)] * 4
@@ -180,6 +177,15 @@ def gltf_material(material, folder: Path, name: str = "captured material") -> di
 
 
 # --- the capture folder ------------------------------------------------------------------------------
+
+
+def specular_color(material, pbr: dict | None = None) -> tuple[torch.Tensor, float]:
+    """The specular colour of the metallic-roughness exports (glTF KHR_materials_specular, MaterialX):
+    (the texture (3, H, W) in [0, 1], its factor >= 1), with dielectric F0 = 0.04 x factor x texture."""
+    metallic = (pbr or material.to_pbr())["metallic"]
+    specular = material.specular * (1 - metallic) + constants.DIELECTRIC_F0 * metallic
+    factor = max(1.0, float(specular.max()) / constants.DIELECTRIC_F0)
+    return (specular / (constants.DIELECTRIC_F0 * factor)).clamp(0, 1), factor
 
 
 def check_output(out: Path, overwrite: bool) -> None:
@@ -255,7 +261,7 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
         write_bytes(staging / "material.gltf", _json_bytes(gltf))
         from .interchange import usd_available, write_materialx, write_usd
 
-        write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
+        write_materialx(staging, specular_color(material)[1])
         if usd_available():
             write_usd(staging)
         capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,

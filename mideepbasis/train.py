@@ -704,13 +704,13 @@ class Trainer:
                 predicted.append(output.maps.float().cpu())
         model.train()
         predicted, maps = torch.cat(predicted), batch.maps
-        rmse = map_rmse(predicted, maps)
+        rmse = unit_normal_map_rmse(predicted, maps)
         flat = maps.clone()
         flat[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
         score = sum(rmse.values()) / len(rmse)
         record = {"step": self.step, "validation_rmse": rmse, "validation_score": score,
                   "validation_rerender_rmse": self._validation_rerender_rmse(predicted, maps),
-                  "validation_flat_normal_rmse": map_rmse(flat, maps)["normal"],
+                  "validation_flat_normal_rmse": unit_normal_map_rmse(flat, maps)["normal"],
                   "validation_tilt_deg": {"predicted": mean_tilt_deg(predicted), "truth": mean_tilt_deg(maps)}}
         self.log(record)
         if score < self.best_score:
@@ -758,8 +758,9 @@ def widen_inputs(source: dict, target: dict, source_inputs: int) -> dict:
 VALIDATION_SEED = 10**9
 
 
-def map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
-    """RMSE of each map over a batch (B, 10, H, W), in the in-memory encoding."""
+def unit_normal_map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
+    """RMSE of each map over a batch (B, 10, H, W), in the in-memory encoding (unit normals, so the
+    normal's figure is twice ``evaluation.map_rmse``'s, which is in the stored encoding)."""
     rmse = ((predicted - truth) ** 2).mean(dim=(0, 2, 3)).sqrt()
     return {name: rmse[channels].mean().item() for name, channels in constants.MAP_SLICES.items()}
 

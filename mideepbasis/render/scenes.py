@@ -59,7 +59,7 @@ def set_material(scene: mi.Scene, material, shape: str = "sample") -> None:
 
 
 #: Objects of the shape previews (``shape_*.xml``); ``plane`` is the environment preview itself.
-SHAPES = ("plane", "sphere", "cloth")
+SHAPES = constants.PREVIEW_SHAPES
 
 
 def environment_part(environment: str) -> dict:
