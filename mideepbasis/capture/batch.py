@@ -85,6 +85,7 @@ def _capture_one(photo: Path, target: Path) -> BatchItem:
     options = _WORKER["options"]
     try:
         result = _WORKER["capturer"].capture(photo)
+        result.output = None  # the network's tensors are not written: free them before the renders
         save_capture(result, target, exr=options.exr, overwrite=options.overwrite,
                      preview_tiles=options.preview_tiles, shape_previews=options.shape_previews)
     except MideepbasisError as error:
