@@ -178,6 +178,11 @@ class TrainConfig:
         return cls(**{key: tuple(value) if key == "data" else value for key, value in values.items()})
 
 
+#: NetworkConfig fields of the local unit's size: ``--init`` from a network with another local unit
+#: loads everything else and starts the local unit afresh.
+LOCAL_UNIT_FIELDS = ("local_width", "local_encoder_blocks", "local_middle_blocks", "local_decoder_blocks",
+                     "local_ending_kernel")
+
 #: Settings a resumed run may change: where and how it runs, not what it learns.
 RESUMABLE_CHANGES = frozenset({"out", "workers", "checkpoint_minutes", "log_every", "validate_every", "device",
                                "max_minutes", "render_backend"})
@@ -479,18 +484,25 @@ class Trainer:
         return getattr(self.model, "module", self.model).config.extra_inputs
 
     def _initialise_from(self, path: str) -> None:
+        """Start from a checkpoint's weights. It may differ from this run's network in the optional
+        inputs (their weights start at zero: ``widen_inputs``) and in the local unit's size (the
+        local unit then starts afresh; everything else is loaded)."""
         from dataclasses import replace
 
         from .model.checkpoint import load_model
 
         source = load_model(path)
         config = self.model.config
-        same_but_inputs = replace(source.config, extra_inputs=config.extra_inputs) == config
-        if source.config != config and not same_but_inputs:
-            raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} preset)")
-        state = source.state_dict()
-        if source.config != config:
-            state = widen_inputs(state, self.model.state_dict(), source.config.input_channels)
+        local_fields = {name: getattr(config, name) for name in LOCAL_UNIT_FIELDS}
+        if replace(source.config, extra_inputs=config.extra_inputs, **local_fields) != config:
+            raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
+                             "preset) in more than the optional inputs and the local unit's size")
+        state, target = source.state_dict(), self.model.state_dict()
+        if any(getattr(source.config, name) != value for name, value in local_fields.items()):
+            state = {name: value for name, value in state.items() if not name.startswith("local_unit.")}
+            state.update({name: value for name, value in target.items() if name.startswith("local_unit.")})
+        if source.config.extra_inputs != config.extra_inputs:
+            state = widen_inputs(state, target, source.config.input_channels)
         self.model.load_state_dict(state)
 
     def _resume(self) -> None:

@@ -263,6 +263,23 @@ def test_validation_keeps_the_best_weights_and_a_time_limit_stops_with_a_checkpo
     assert not (tmp_path / "run" / "model.safetensors").exists()  # stopped, not finished
 
 
+def test_init_from_a_network_with_another_local_unit_loads_the_rest(tmp_path):
+    from mideepbasis.errors import InputError
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    source = DeepBasisNet(preset("tiny"))
+    path = save_checkpoint(tmp_path / "source.safetensors", source)
+    wider = Trainer(tiny_config(tmp_path / "w", init=str(path), network={"local_width": 8}), progress=False)
+    loaded, original = wider.model.state_dict(), source.state_dict()
+    rest = [name for name in original if not name.startswith("local_unit.")]
+    assert rest and all(torch.equal(loaded[name], original[name]) for name in rest)
+    assert loaded["local_unit.intro.weight"].shape[0] == 8 != original["local_unit.intro.weight"].shape[0]
+    with pytest.raises(InputError, match="differs from this run's"):
+        Trainer(tiny_config(tmp_path / "n", init=str(path), network={"num_bases": 3}), progress=False)
+
+
 def test_widened_inputs_start_as_the_narrow_network():
     from mideepbasis.model.network import DeepBasisNet, preset
     from mideepbasis.train import widen_inputs
