@@ -106,7 +106,7 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("--shape-previews", action=argparse.BooleanOptionalAction, default=None,
                         help="path trace the material on a sphere and a draped cloth too (default: for one photo, "
                              "not for several)")
-    parser.add_argument("--workers", type=int, default=None,
+    parser.add_argument("--workers", type=_positive_int, default=None,
                         help="worker processes for several photos (default: one per core); each loads the model once")
     parser.add_argument("--truth", type=Path, default=None, metavar="MATERIAL",
                         help="a material folder of the photographed surface: also render it in the environment "
@@ -162,8 +162,9 @@ def _capture_batch(photos: list[Path], args, config) -> int:
     """Several photos: worker processes (``capture.batch``), one line per photo as it completes."""
     from tqdm import tqdm
 
-    from .capture.batch import SaveOptions, capture_batch
+    from .capture.batch import SaveOptions, capture_batch, check_batch
 
+    check_batch(photos, args.output, args.model)  # before the progress bar: a refusal is one line
     failures = 0
     options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles, shape_previews=bool(args.shape_previews))
     items = capture_batch(photos, args.output, args.model, config, options, args.workers)
@@ -359,7 +360,10 @@ def _run_train(args) -> None:
     if args.resume:
         # The run's own settings; the options given replace them (and must agree where it matters).
         document, _ = read_checkpoint(checkpoint)
-        base = TrainConfig.from_dict(document["training"]["config"], str(checkpoint))
+        try:
+            base = TrainConfig.from_dict(document["training"]["config"], str(checkpoint), document.get("network"))
+        except (KeyError, TypeError, ValueError) as error:
+            raise InputError(f"{checkpoint}: its stored training settings cannot be read ({error})") from None
         if "preset" in args and args.preset != base.preset:
             raise InputError(f"{checkpoint}: this run was started with preset = {base.preset!r}, not {args.preset!r}")
     else:

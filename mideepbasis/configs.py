@@ -11,9 +11,11 @@ Options default to "not given" (``argparse.SUPPRESS``): ``config_from_arguments`
 base config (the class's defaults, or a stored one when a run resumes) and replaces only the
 fields the user gave, and ``given_fields`` says which those were.
 
-A field may carry ``metadata={"parse": function, "metavar": "..."}`` for a value the annotation
-does not describe (``N|native``). Tuples are written comma-separated (``--light 0.1,-0.2``);
-``none`` gives None where the annotation allows it.
+A field may carry ``metadata={"parse": function, "metavar": "...", "choices": (...)}`` for a value
+the annotation does not describe (``N|native``, ``positive_int``, a set of names). Tuples are
+written comma-separated (``--light 0.1,-0.2``); an option of a variable-length tuple may also be
+repeated, its values joined (``--data procedural --data FOLDER``); ``none`` gives None where the
+annotation allows it.
 """
 
 from __future__ import annotations
@@ -49,6 +51,27 @@ def field_docs(cls: type) -> dict[str, str]:
                     and isinstance(following.value.value, str)):
                 docs[statement.target.id] = " ".join(following.value.value.split())
     return docs
+
+
+def positive_int(text: str) -> int:
+    """An integer of at least 1, for a field's ``metadata={"parse": positive_int}``."""
+    value = int(text)
+    if value < 1:
+        raise ValueError(f"must be a positive integer, got {value}")
+    return value
+
+
+class _JoinRepeated(argparse.Action):
+    """A variable-length tuple option given more than once: its values joined in order."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, tuple(getattr(namespace, self.dest, ())) + tuple(values))
+
+
+def _is_variable_tuple(annotation) -> bool:
+    annotation = _parts(annotation)[0]
+    arguments = typing.get_args(annotation)
+    return typing.get_origin(annotation) is tuple and len(arguments) == 2 and arguments[1] is Ellipsis
 
 
 def _resolved_hints(cls: type) -> dict[str, object]:
@@ -154,8 +177,12 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, skip: set[s
                                 default=argparse.SUPPRESS, help=help_text)
             continue
         parse = _checked(item.metadata["parse"]) if "parse" in item.metadata else _value_parser(annotation)
+        extra = {"choices": item.metadata["choices"]} if "choices" in item.metadata else {}
+        metavar = item.metadata.get("metavar") or ("{" + ",".join(extra["choices"]) + "}" if extra else _metavar(annotation))
+        if _is_variable_tuple(annotation):
+            extra["action"] = _JoinRepeated
         parser.add_argument(option, dest=_destination(path), type=parse, default=argparse.SUPPRESS,
-                            metavar=item.metadata.get("metavar", _metavar(annotation)), help=help_text)
+                            metavar=metavar, help=help_text, **extra)
 
 
 def _checked(parse):

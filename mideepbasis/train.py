@@ -25,7 +25,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +34,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from . import constants
-from .configs import differences
+from .configs import differences, positive_int
 from .data.synth import SynthesisConfig, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
@@ -58,13 +58,13 @@ class TrainConfig:
     data: tuple[str, ...] = ("procedural",)
     """Material sources: ``procedural`` and/or folders (material folders, PBR folders, Deschaintre strips)."""
 
-    steps: int = 1000
+    steps: int = field(default=1000, metadata={"parse": positive_int})
     """Optimisation steps."""
 
-    batch: int = 8
+    batch: int = field(default=8, metadata={"parse": positive_int})
     """Materials per step and process (each seen twice: M and M + xi)."""
 
-    size: int = constants.DEFAULT_RESOLUTION
+    size: int = field(default=constants.DEFAULT_RESOLUTION, metadata={"parse": positive_int})
     """Training resolution [pixels]; a multiple of the network's stride."""
 
     lr: float = 1e-3
@@ -100,13 +100,13 @@ class TrainConfig:
     checkpoint_minutes: float = 5.0
     """Write the resumable checkpoint this often [minutes]."""
 
-    log_every: int = 10
+    log_every: int = field(default=10, metadata={"parse": positive_int})
     """Log the losses every this many steps."""
 
     validate_every: int = 250
     """Write validation renders and metrics every this many steps (0: never)."""
 
-    device: str = "auto"
+    device: str = field(default="auto", metadata={"choices": ("auto", "cpu", "cuda")})
     """``auto`` (CUDA when available), ``cpu`` or ``cuda``."""
 
     synthesis: SynthesisConfig | dict | None = None
@@ -123,11 +123,11 @@ class TrainConfig:
     flash beside the camera the normals change the photo little; under grazing and mirror
     configurations they change it a lot."""
 
-    render_lights: int = 6
+    render_lights: int = field(default=6, metadata={"parse": positive_int})
     """Light-and-view pairs per material of the re-rendering loss; half of them (rounded down)
     are mirror pairs that put a highlight on the sample."""
 
-    render_backend: str = "mitsuba"
+    render_backend: str = field(default="mitsuba", metadata={"choices": ("mitsuba", "torch")})
     """Renderer of the training photos, the error map and the re-rendering loss: ``mitsuba`` (the
     ``svbrdf`` plugin) or ``torch`` (the reference, equal to float precision; for a GPU server
     without Mitsuba)."""
@@ -141,7 +141,7 @@ class TrainConfig:
     warmup_steps: int = 0
     """Linear learning-rate warm-up over this many steps before the cosine decay."""
 
-    validation_count: int = 32
+    validation_count: int = field(default=32, metadata={"parse": positive_int})
     """Held-out procedural materials (fixed seeds, never drawn in training) of each validation."""
 
     max_minutes: float = 0.0
@@ -160,17 +160,21 @@ class TrainConfig:
                                            for key, value in (synthesis or {}).items()})
         self.synthesis = dataclasses.replace(synthesis, convention=self.network.convention)
         self.data = tuple(self.data)
+        if not self.data:
+            raise ValueError("no material sources (data): give procedural and/or folders")
 
     @classmethod
-    def from_dict(cls, values: dict, source: str = "checkpoint") -> TrainConfig:
-        """The config a checkpoint stores (older checkpoints store the network and the synthesis as
-        overrides of the preset's and the defaults: they resolve to the same config)."""
+    def from_dict(cls, values: dict, source: str = "checkpoint", network: dict | None = None) -> TrainConfig:
+        """The config a checkpoint stores. Older checkpoints store the network as overrides of its
+        preset and the synthesis as overrides of the defaults: the network is then the one the
+        checkpoint's weights were saved with (``network``, its document's), not today's preset."""
         from .model.checkpoint import network_config_from_dict
 
         values = dict(values)
-        network = values.get("network")
-        if isinstance(network, dict) and "encoder_channels" in network:
-            values["network"] = network_config_from_dict(network, source)
+        stored = values.get("network")
+        complete = {f.name for f in dataclasses.fields(NetworkConfig)} <= set(stored or {})
+        if isinstance(stored, dict) and (complete or network is not None):
+            values["network"] = network_config_from_dict(stored if complete else network, source)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - known)
         if unknown:
@@ -511,7 +515,11 @@ class Trainer:
         state = document.get("training_state")
         if state is None:
             raise InputError(f"{path}: has no training state to resume from")
-        stored = TrainConfig.from_dict(document["training"]["config"], str(path))
+        stored = TrainConfig.from_dict(document["training"]["config"], str(path), document.get("network"))
+        processes = document["training"].get("world_size", 1)
+        if processes != self.world_size:
+            raise InputError(f"{path}: this run was started in {processes} process(es), not {self.world_size}: "
+                             "resume it with as many")
         changed = differences(stored, self.config, ignore=RESUMABLE_CHANGES)
         if changed:
             name, before, now = changed[0]

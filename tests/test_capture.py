@@ -357,3 +357,18 @@ def test_the_public_capture_is_callable_as_design_promises(tmp_path):
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.split() == ["CaptureResult", "256", "capture"]
+
+
+def test_a_batch_refuses_clashing_names_and_a_model_that_does_not_load_before_any_work(tmp_path, capsys):
+    for name in ("a/shot.png", "b/shot.jpg"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        Image.fromarray(np.full((80, 80, 3), 128, np.uint8)).save(tmp_path / name)
+    out = tmp_path / "out"
+    assert cli.main(["capture", str(tmp_path / "a"), str(tmp_path / "b"), "-o", str(out)]) == 2
+    assert "would both be written to" in capsys.readouterr().err
+    (tmp_path / "b" / "shot.jpg").rename(tmp_path / "b" / "other.jpg")
+    assert cli.main(["capture", str(tmp_path / "a"), str(tmp_path / "b"), "-o", str(out),
+                     "--model", str(tmp_path / "missing.safetensors")]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "missing.safetensors: no such checkpoint file" in error[0]
+    assert not out.exists() or not any(out.iterdir())

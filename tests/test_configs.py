@@ -85,3 +85,27 @@ def test_bad_values_are_one_line_errors_naming_the_option(arguments, message):
     with pytest.raises(argparse.ArgumentError, match=message) as error:
         parse(*arguments)
     assert arguments[0] in str(error.value)
+
+
+def test_repeated_tuples_join_and_fields_check_their_values():
+    from mideepbasis.configs import positive_int
+
+    @dataclass(frozen=True)
+    class Checked:
+        sources: tuple[str, ...] = ("procedural",)
+        """Sources."""
+
+        device: str = field(default="auto", metadata={"choices": ("auto", "cpu")})
+        """Where."""
+
+        batch: int = field(default=8, metadata={"parse": positive_int})
+        """Materials per step."""
+
+    parser = argparse.ArgumentParser(exit_on_error=False)
+    add_config_arguments(parser, Checked)
+    args = parser.parse_args(["--sources", "procedural", "--sources", "a,b", "--device", "cpu", "--batch", "2"])
+    assert config_from_arguments(Checked, args) == Checked(sources=("procedural", "a", "b"), device="cpu", batch=2)
+    assert "--device {auto,cpu}" in parser.format_help()
+    for arguments, message in ((["--device", "gpu"], "invalid choice"), (["--batch", "0"], "positive integer")):
+        with pytest.raises(argparse.ArgumentError, match=message):
+            parser.parse_args(arguments)

@@ -66,10 +66,14 @@ def default_workers(photos: int) -> int:
 
 
 def _start_worker(model, config, options: SaveOptions) -> None:
+    import signal
+
     import torch
 
     from .pipeline import Capturer
 
+    # Ctrl-C is the main process's to handle: it stops the workers itself.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # One core each for torch: the workers, not the threads inside them, share the machine.
     # (drjit keeps its pool: Mitsuba's path tracer waits forever on a pool of one thread.)
     torch.set_num_threads(1)
@@ -90,8 +94,25 @@ def _capture_one(photo: Path, target: Path) -> BatchItem:
                      preview_tiles=options.preview_tiles, shape_previews=options.shape_previews)
     except MideepbasisError as error:
         return BatchItem(photo, target, error=str(error))
+    except Exception as error:  # noqa: BLE001 - one photo's failure (a full disk, a bug) is its own line
+        return BatchItem(photo, target, error=f"{type(error).__name__}: {error}")
     return BatchItem(photo, target, offset_angle_deg=result.offset_angle_deg,
                      seconds=time.perf_counter() - started, notes=list(result.notes))
+
+
+def check_batch(photos: list[Path], out: Path, model=None) -> None:
+    """Refuse, before any work, a batch whose photos share a name (they would share ``out/<name>``)
+    or whose model does not load (the workers would each fail to start)."""
+    from ..errors import InputError
+    from ..model.checkpoint import read_checkpoint, shipped_model_path
+
+    seen: dict[str, Path] = {}
+    for photo in photos:
+        if photo.stem in seen:
+            raise InputError(f"'{seen[photo.stem]}' and '{photo}' would both be written to {out / photo.stem}: "
+                             "rename one or capture them separately")
+        seen[photo.stem] = photo
+    read_checkpoint(model if model is not None else shipped_model_path())
 
 
 def capture_batch(photos: list[Path], out: Path, model=None, config=None, options: SaveOptions = SaveOptions(),
@@ -99,24 +120,31 @@ def capture_batch(photos: list[Path], out: Path, model=None, config=None, option
     """Capture every photo into ``out/<photo stem>/``; yields each outcome as it completes.
 
     Args:
-        photos: the photo files.
+        photos: the photo files (``check_batch`` first: distinct names, a model that loads).
         out: the folder that receives one material folder per photo.
         model: a checkpoint path, or None for the shipped model (each worker loads it once).
         config: the ``CaptureConfig`` of every capture (None: the defaults).
         options: what is written per photo.
         workers: worker processes (None: one per core, at most one per photo).
+
+    Raises:
+        MideepbasisError: a worker died (the batch cannot go on).
     """
     import multiprocessing
+    from concurrent.futures.process import BrokenProcessPool
 
+    from ..errors import MideepbasisError
     from .pipeline import CaptureConfig
 
+    check_batch(photos, out, model)
     config = config or CaptureConfig()
     workers = workers or default_workers(len(photos))
     model = str(model) if model is not None else None
     # spawn, not fork: drjit's and torch's thread pools do not survive a fork.
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_start_worker,
-                             initargs=(model, config, options)) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_start_worker,
+                               initargs=(model, config, options))
+    try:
         # At most two photos queued per worker: results come back in order of completion.
         queue = iter(photos)
         running = set()
@@ -136,4 +164,14 @@ def capture_batch(photos: list[Path], out: Path, model=None, config=None, option
             for future in done:
                 running.discard(future)
                 submit()
-                yield future.result()
+                try:
+                    yield future.result()
+                except BrokenProcessPool:
+                    raise MideepbasisError("a capture worker process died (out of memory?); the batch stopped") from None
+    except BaseException:
+        # Ctrl-C, or the caller stopped reading: drop what is queued and stop the workers now.
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in list(getattr(pool, "_processes", {}).values()):
+            process.terminate()
+        raise
+    pool.shutdown(wait=True)

@@ -10,11 +10,12 @@ Shapes: photo (3, H, W) linear; light (3,) [patch half-widths]; global bases (1,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
 from .. import constants
+from ..configs import positive_int
 from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps
 from .search import downsample
 
@@ -27,7 +28,7 @@ class RefineConfig:
     """Adam steps; 0 turns refinement off. (The paper: 500; with the normals kept, 125 did as well
     here: benchmarks/refinement.py.)"""
 
-    resolution: int = 64
+    resolution: int = field(default=64, metadata={"parse": positive_int})
     """Resolution of the refinement's renders [pixels]."""
 
     lr: float = 0.01

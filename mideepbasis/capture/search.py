@@ -11,13 +11,14 @@ Shapes: photo (3, H, W) linear; offsets (K, 2) [patch half-widths]; maps (1, 10,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
 import torch.nn.functional as F
 
 from .. import constants, geometry
+from ..configs import positive_int
 from ..model.network import DeepBasisOutput
 
 #: A prediction: photos (B, 3, H, W) and flash positions (B, 3) to the network's output.
@@ -28,17 +29,17 @@ Predictor = Callable[[torch.Tensor, torch.Tensor], DeepBasisOutput]
 class SearchConfig:
     """How the flash of a hand-held shot is searched for."""
 
-    grid: int = 21
+    grid: int = field(default=21, metadata={"parse": positive_int})
     """Candidates per side of the square grid over the offsets within delta."""
 
-    resolution: int = 128
+    resolution: int = field(default=128, metadata={"parse": positive_int})
     """Resolution of the candidate renders [pixels]."""
 
-    network_resolution: int = 256
+    network_resolution: int = field(default=256, metadata={"parse": positive_int})
     """Largest resolution of the search's network passes [pixels]: a larger photo is searched on
     a downsampled copy (the flash position shows at any scale), then predicted in full."""
 
-    passes: int = 6
+    passes: int = field(default=6, metadata={"parse": positive_int})
     """Most network passes."""
 
     prior: float = 0.02

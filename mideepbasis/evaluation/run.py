@@ -179,7 +179,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
             per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention,
                                                       lpips, stored=stored)
         else:
-            notes.append("the direct per-pixel baseline needs --direct-model (a checkpoint trained with --no-bases)")
+            notes.append("the direct per-pixel baseline needs --direct-model (a checkpoint trained with --no-network-use-bases)")
     for row, metrics in per_material.items():
         rows[row].update({key: float(value.mean()) for key, value in metrics.items()})
 

@@ -79,7 +79,7 @@ class NetworkConfig:
     use_bases: bool = True
     """Use the basis model at all (else the encoder-decoder predicts the 10 map channels directly)."""
 
-    convention: str = constants.DEFAULT_CONVENTION
+    convention: str = field(default=constants.DEFAULT_CONVENTION, metadata={"choices": constants.CONVENTIONS})
     """Shading convention of the error-map render (and of the training renders)."""
 
     extra_inputs: tuple[str, ...] = ()
@@ -334,6 +334,8 @@ class DeepBasisOutput:
         weights and local deviations."""
         if self.weights is None:
             raise ValueError("an output without bases (a direct network's) has no global bases to replace")
+        if self.deviations is None:  # no local unit: the bases are the global ones, kept unit-normal
+            global_bases = normalize_basis_normals(global_bases, dim=2).clamp(-1.0, 1.0)
         return DeepBasisOutput.from_bases(self.weights, global_bases.to(self.weights), self.deviations,
                                           keep_bases=False, error=self.error, extras=self.extras)
 
