@@ -162,11 +162,11 @@ def _capture_batch(photos: list[Path], args, config) -> int:
     """Several photos: worker processes (``capture.batch``), one line per photo as it completes."""
     from tqdm import tqdm
 
-    from .capture.batch import SaveOptions, capture_batch, check_batch
+    from .capture.batch import SaveOptions, capture_batch
 
-    check_batch(photos, args.output, args.model)  # before the progress bar: a refusal is one line
     failures = 0
     options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles, shape_previews=bool(args.shape_previews))
+    # Checked on the call, before the progress bar: a refusal is one line.
     items = capture_batch(photos, args.output, args.model, config, options, args.workers)
     for item in tqdm(items, total=len(photos), desc="capturing", unit="photo"):
         if item.error is not None:

@@ -74,10 +74,6 @@ def _is_variable_tuple(annotation) -> bool:
     return typing.get_origin(annotation) is tuple and len(arguments) == 2 and arguments[1] is Ellipsis
 
 
-def _resolved_hints(cls: type) -> dict[str, object]:
-    return typing.get_type_hints(cls)
-
-
 def _parts(annotation) -> tuple[object, bool]:
     """(the annotation without ``None``, whether None is allowed)."""
     if typing.get_origin(annotation) in (typing.Union, types.UnionType):
@@ -160,7 +156,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, skip: set[s
     prefixed with the field's name). ``skip`` names fields (dotted for nested ones: ``refine.lr``)
     the command sets otherwise; ``defaults`` (an instance) is shown in the help (default: the class's)."""
     defaults = defaults if defaults is not None else cls()
-    hints, docs = _resolved_hints(cls), field_docs(cls)
+    hints, docs = typing.get_type_hints(cls), field_docs(cls)
     for item in dataclasses.fields(cls):
         path = _path + (item.name,)
         if ".".join(path) in skip:
@@ -217,7 +213,7 @@ def given_fields(args: argparse.Namespace, cls: type) -> dict[str, object]:
     given = {}
 
     def visit(klass: type, path: tuple[str, ...]) -> None:
-        hints = _resolved_hints(klass)
+        hints = typing.get_type_hints(klass)
         for item in dataclasses.fields(klass):
             here = path + (item.name,)
             if _nested(hints[item.name]):
@@ -232,7 +228,7 @@ def given_fields(args: argparse.Namespace, cls: type) -> dict[str, object]:
 def config_from_arguments(cls: type, args: argparse.Namespace, base=None, _path: tuple[str, ...] = ()):
     """``base`` (default: ``cls()``) with the fields given on the command line replaced."""
     config = base if base is not None else cls()
-    hints = _resolved_hints(cls)
+    hints = typing.get_type_hints(cls)
     changes = {}
     for item in dataclasses.fields(cls):
         path = _path + (item.name,)

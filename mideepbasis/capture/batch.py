@@ -120,7 +120,8 @@ def capture_batch(photos: list[Path], out: Path, model=None, config=None, option
     """Capture every photo into ``out/<photo stem>/``; yields each outcome as it completes.
 
     Args:
-        photos: the photo files (``check_batch`` first: distinct names, a model that loads).
+        photos: the photo files: distinct names, checked with the model (``check_batch``) before
+            this returns, so that a refusal comes before any work.
         out: the folder that receives one material folder per photo.
         model: a checkpoint path, or None for the shipped model (each worker loads it once).
         config: the ``CaptureConfig`` of every capture (None: the defaults).
@@ -128,15 +129,21 @@ def capture_batch(photos: list[Path], out: Path, model=None, config=None, option
         workers: worker processes (None: one per core, at most one per photo).
 
     Raises:
-        MideepbasisError: a worker died (the batch cannot go on).
+        InputError: photos that share a name, a model that does not load (on the call).
+        MideepbasisError: a worker died (the batch cannot go on; while iterating).
     """
+    check_batch(photos, out, model)
+    return _run_batch(photos, out, model, config, options, workers)
+
+
+def _run_batch(photos: list[Path], out: Path, model, config, options: SaveOptions,
+               workers: int | None) -> Iterator[BatchItem]:
     import multiprocessing
     from concurrent.futures.process import BrokenProcessPool
 
     from ..errors import MideepbasisError
     from .pipeline import CaptureConfig
 
-    check_batch(photos, out, model)
     config = config or CaptureConfig()
     workers = workers or default_workers(len(photos))
     model = str(model) if model is not None else None

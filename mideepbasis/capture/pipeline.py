@@ -124,7 +124,7 @@ class CaptureResult:
     @property
     def light_position(self) -> torch.Tensor:
         """(3,) the flash position [patch half-widths]."""
-        return geometry.light_positions(torch.tensor(self.offset, dtype=torch.float32), self.fov)
+        return flash_position(self.offset, self.fov)
 
 
 # --- prediction -------------------------------------------------------------------------------------
@@ -200,26 +200,27 @@ class Capturer:
 
     def with_config(self, **overrides) -> Capturer:
         """This model with some ``CaptureConfig`` fields replaced (no reload)."""
-        capturer = object.__new__(Capturer)
-        capturer.model, capturer.config = self.model, replace(self.config, **overrides)
-        return capturer
+        return Capturer(self.model, replace(self.config, **overrides))
 
     @property
     def convention(self) -> str:
         return self.model.info.convention
 
+    @property
+    def requested_fov(self) -> float | None:
+        """The field of view asked for [deg]: the config's, else the one the model was trained for."""
+        return self.config.fov if self.config.fov is not None else self.model.info.fov_deg
+
     def load(self, path: str | Path) -> Photo:
         """Read a photo file (``capture.photo.load_photo``) with the model's photo decoding and the
         field of view of the config, else of the model, else of the photo's EXIF or 45 deg."""
-        info = self.model.info
-        requested = self.config.fov if self.config.fov is not None else info.fov_deg
-        pixels, fov, source, notes = load_photo(path, requested, self.config.resolution,
-                                                decoding=info.photo_decoding, crop=self.config.crop)
+        pixels, fov, source, notes = load_photo(path, self.requested_fov, self.config.resolution,
+                                                decoding=self.model.info.photo_decoding, crop=self.config.crop)
         return Photo(pixels, fov, source, self._fov_notes(fov, notes))
 
     def photo_from_tensor(self, pixels: torch.Tensor) -> Photo:
         """A (3, H, W) linear tensor as a photo (the config's field of view, else the model's, else 45 deg)."""
-        requested = self.config.fov if self.config.fov is not None else self.model.info.fov_deg
+        requested = self.requested_fov
         fov, source = (requested, "argument") if requested else (constants.DEFAULT_FOV_DEG, "default")
         return Photo(pixels.float().clamp(0, 1), fov, source, self._fov_notes(fov, []))
 
@@ -272,10 +273,9 @@ class Capturer:
         output = self.predict(photo, offset)
         timings["predict"] = time.perf_counter() - start
 
-        losses = []
-        if config.refine.steps > 0 and output.weights is not None:
-            start = time.perf_counter()
-            output, losses = self.refine(output, photo, offset, progress)
+        start = time.perf_counter()
+        output, losses = self.refine(output, photo, offset, progress)
+        if losses:
             timings["refine"] = time.perf_counter() - start
         maps = output.maps.cpu()
         if config.tileable:

@@ -161,10 +161,16 @@ def blend(weights: torch.Tensor, bases: torch.Tensor) -> torch.Tensor:
     """sum_i w_i b_i: weights (B, N, H, W) and bases (B, N, 10) or (B, N, 10, H, W) -> (B, 10, H, W)."""
     if bases.ndim == 3:
         return torch.einsum("bnhw,bnc->bchw", weights, bases)
-    # One basis at a time, so no (B, N, 10, H, W) product is materialised; unbind (not indexing)
-    # so that the backward pass stacks the gradients once instead of zero-filling N full tensors.
+    # unbind (not indexing) so that the backward pass stacks the gradients once instead of
+    # zero-filling N full tensors.
+    return weighted_sum(weights.unbind(1), bases.unbind(1))
+
+
+def weighted_sum(weights, bases) -> torch.Tensor:
+    """sum_i w_i b_i over per-basis weights (B, H, W) and bases (B, 10, H, W), taken one basis at a
+    time (``bases`` may be a generator), so no (B, N, 10, H, W) product is materialised."""
     total = None
-    for weight, basis in zip(weights.unbind(1), bases.unbind(1)):
+    for weight, basis in zip(weights, bases):
         term = weight.unsqueeze(1) * basis
         total = term if total is None else total + term
     return total
@@ -276,12 +282,9 @@ def compose_bases(weights: torch.Tensor, global_bases: torch.Tensor, deviations:
         return global_bases, blend(weights, global_bases)
     global_bases = global_bases.to(device=deviations.device)
     if not keep_bases:
-        total = None
-        for weight, base, deviation in zip(weights.unbind(1), global_bases.unbind(1), deviations.unbind(1)):
-            basis = normalize_basis_normals(base[..., None, None] + deviation, dim=1).clamp(-1.0, 1.0)
-            term = weight.unsqueeze(1) * basis
-            total = term if total is None else total + term
-        return None, total
+        bases = (normalize_basis_normals(base[..., None, None] + deviation, dim=1).clamp(-1.0, 1.0)
+                 for base, deviation in zip(global_bases.unbind(1), deviations.unbind(1)))
+        return None, weighted_sum(weights.unbind(1), bases)
     bases = normalize_basis_normals(global_bases[..., None, None] + deviations, dim=2).clamp(-1.0, 1.0)
     return bases, blend(weights, bases)
 
