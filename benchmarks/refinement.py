@@ -74,10 +74,10 @@ def main() -> None:
     for index in tqdm(chosen, desc="materials", unit="material"):
         photos, position = flash_photos(truth[index:index + 1], offsets[index:index + 1], fov, convention, extent)
         photo, offset = Photo(photos[0], fov, "argument"), offsets[index]
-        output = capturer.predict(photo, offset)
+        prediction = capturer.predict(photo, offset)
         for name, refine in table.items():
             started = time.perf_counter()
-            maps = capturer.with_config(refine=refine).refine(output, photo, offset)[0].maps.cpu()
+            maps = capturer.with_config(refine=refine).refine(prediction, photo, offset)[0].maps.cpu()
             seconds[name] += time.perf_counter() - started
             predictions[name].append(maps)
             # How well the material explains the photo it came from (what the refinement minimises).

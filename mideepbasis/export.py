@@ -35,7 +35,7 @@ import torch
 
 from . import constants
 from .errors import InputError
-from .imageio import linear_to_srgb, write_bytes, write_image
+from .imageio import background_writes, linear_to_srgb, write_bytes, write_image
 
 
 def _json_bytes(document: dict) -> bytes:
@@ -221,51 +221,53 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir()
     try:
-        material = result.material
-        if exr:
-            material.save(staging, format="exr")
-        material.save(staging, format="png")
-        light = {"offset": list(result.offset), "offset_unit": "patch half-widths",
-                 "offset_angle_deg": result.offset_angle_deg,
-                 "offset_angles_deg": [math.degrees(math.atan(t / constants.camera_height(result.fov)))
-                                       for t in result.offset],
-                 "position": result.light_position.tolist(), "fov_deg": result.fov, "fov_source": result.fov_source,
-                 "searched": result.searched, "search": result.search_history}
-        write_bytes(staging / "light.json", _json_bytes(light))
+        # PNG encoding and writing overlap with the renders; the staging folder is published whole.
+        with background_writes():
+            material = result.material
+            if exr:
+                material.save(staging, format="exr")
+            material.save(staging, format="png")
+            light = {"offset": list(result.offset), "offset_unit": "patch half-widths",
+                     "offset_angle_deg": result.offset_angle_deg,
+                     "offset_angles_deg": [math.degrees(math.atan(t / constants.camera_height(result.fov)))
+                                           for t in result.offset],
+                     "position": result.light_position.tolist(), "fov_deg": result.fov, "fov_source": result.fov_source,
+                     "searched": result.searched, "search": result.search_history}
+            write_bytes(staging / "light.json", _json_bytes(light))
 
-        maps = material.to_tensor()[None]
-        with torch.no_grad():
-            rerender = render_flash(maps, result.light_position.view(1, 1, 3), fov=result.fov,
-                                    convention=material.convention)[0, 0]
-        error = (rerender.clamp(0, 1) - result.photo).abs()
-        write_image(staging / "photo.png", _hwc(result.photo).clip(0, 1), encode_srgb=True)
-        write_image(staging / "rerender.png", _hwc(rerender).clip(0, 1), encode_srgb=True)
-        write_image(staging / "error.png", (_hwc(error) * 4).clip(0, 1), encode_srgb=True)
-        scene = preview_scene(maps[0], environment=environment, spp=environment_spp, convention=material.convention)
-        environment_image = render(scene, progress=progress)
-        write_image(staging / "environment.png", environment_image.clip(0, 1), encode_srgb=True)
-        for shape in ("sphere", "cloth") if shape_previews else ():
-            preview = render(shape_scene(maps[0], shape, environment, tiles=preview_tiles, spp=shape_spp,
-                                         convention=material.convention))
-            write_image(staging / f"preview_{shape}.png", preview.clip(0, 1), encode_srgb=True)
-        if truth is not None:
-            truth_scene = preview_scene(truth.to_tensor(), environment=environment, spp=environment_spp,
-                                        convention=material.convention)
-            truth_image = render(truth_scene, progress=progress)  # the capture's seed: correlated noise
-            write_image(staging / "environment_truth.png", truth_image.clip(0, 1), encode_srgb=True)
-            difference = np.abs(linear_to_srgb(truth_image.clip(0, 1)) - linear_to_srgb(environment_image.clip(0, 1)))
-            write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
+            maps = material.to_tensor()[None]
+            with torch.no_grad():
+                rerender = render_flash(maps, result.light_position.view(1, 1, 3), fov=result.fov,
+                                        convention=material.convention)[0, 0]
+            error = (rerender.clamp(0, 1) - result.photo).abs()
+            write_image(staging / "photo.png", _hwc(result.photo).clip(0, 1), encode_srgb=True)
+            write_image(staging / "rerender.png", _hwc(rerender).clip(0, 1), encode_srgb=True)
+            write_image(staging / "error.png", (_hwc(error) * 4).clip(0, 1), encode_srgb=True)
+            scene = preview_scene(maps[0], environment=environment, spp=environment_spp, convention=material.convention)
+            environment_image = render(scene, progress=progress)
+            write_image(staging / "environment.png", environment_image.clip(0, 1), encode_srgb=True)
+            for shape in ("sphere", "cloth") if shape_previews else ():
+                preview = render(shape_scene(maps[0], shape, environment, tiles=preview_tiles, spp=shape_spp,
+                                             convention=material.convention))
+                write_image(staging / f"preview_{shape}.png", preview.clip(0, 1), encode_srgb=True)
+            if truth is not None:
+                truth_scene = preview_scene(truth.to_tensor(), environment=environment, spp=environment_spp,
+                                            convention=material.convention)
+                truth_image = render(truth_scene, progress=progress)  # the capture's seed: correlated noise
+                write_image(staging / "environment_truth.png", truth_image.clip(0, 1), encode_srgb=True)
+                difference = np.abs(linear_to_srgb(truth_image.clip(0, 1)) - linear_to_srgb(environment_image.clip(0, 1)))
+                write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
 
-        (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width, material.convention))
-        gltf = gltf_material(material, staging)
-        write_bytes(staging / "material.gltf", _json_bytes(gltf))
-        from .interchange import usd_available, write_materialx, write_usd
+            (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width, material.convention))
+            gltf = gltf_material(material, staging)
+            write_bytes(staging / "material.gltf", _json_bytes(gltf))
+            from .interchange import usd_available, write_materialx, write_usd
 
-        write_materialx(staging, specular_color(material)[1])
-        if usd_available():
-            write_usd(staging)
-        capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,
-                       rerender_rmse=float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt()))
+            write_materialx(staging, specular_color(material)[1])
+            if usd_available():
+                write_usd(staging)
+            capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,
+                           rerender_rmse=float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt()))
         if out.exists():
             shutil.rmtree(out)
         os.replace(staging, out)

@@ -174,6 +174,25 @@ def test_the_network_runs_at_its_training_resolution_and_the_prediction_is_upsam
     assert not torch.allclose(full.global_bases, small.global_bases, atol=1e-4)
 
 
+def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_and_refinement_to_the_bit(tmp_path):
+    torch.manual_seed(0)
+    path = save_checkpoint(tmp_path / "m.safetensors", DeepBasisNet(preset("tiny")).eval(),
+                           metadata={"training": {"config": {"size": 32}}})
+    capturer = Capturer(load_model(path), CaptureConfig(refine=RefineConfig(steps=5, resolution=16)))
+    photos, lights = flash_photos(material(7, size=64), torch.tensor([[0.1, -0.2]]))
+    upsampled = predict(capturer.model, photos[0][None], lights)  # the photo as the capturer passes it
+    prediction = capturer.predict(Photo(photos[0], 45.0, "argument"), (0.1, -0.2))
+    # Nothing of the prediction is held at the photo's size, yet its maps are the upsampled ones.
+    assert prediction.output.deviations.shape[-2:] == (32, 32) and prediction.size == (64, 64)
+    assert torch.equal(prediction.maps, upsampled.maps)
+    assert torch.equal(prediction.output.maps_at(64, 64), upsampled.maps)
+    refined, losses = capturer.refine(prediction, Photo(photos[0], 45.0, "argument"), (0.1, -0.2))
+    bases, reference_losses = refine_global_bases(upsampled, photos[0], lights[0], 45.0, capturer.convention,
+                                                  config=capturer.config.refine)
+    assert losses == reference_losses
+    assert torch.equal(refined.maps, upsampled.compose(bases).maps)
+
+
 def test_field_of_view_from_the_exif_focal_length():
     # A 36 x 24 frame with a 50 mm lens sees 39.6 deg across its width; its centre 24 x 24 square less.
     assert field_of_view_from_focal(50.0, 3600, 2400) == pytest.approx(2 * math.degrees(math.atan(12 / 50)), rel=1e-6)

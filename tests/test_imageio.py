@@ -413,3 +413,30 @@ def test_failed_write_keeps_existing_file(tmp_path, monkeypatch, suffix, bit_dep
     assert_one_line_naming(exc, f"keep.{suffix}")
     assert target.read_bytes() == original
     assert [p.name for p in tmp_path.iterdir()] == [target.name]
+
+
+def test_background_writes_finish_at_the_end_of_the_block_and_read_back_the_same(tmp_path):
+    images = {f"img{i}.png": smooth_image(seed=i) for i in range(4)}
+    with imageio.background_writes():
+        for name, data in images.items():
+            write_image(tmp_path / name, data)
+            data[:] = 0.0  # the caller may reuse its buffer at once: the write took a copy
+        imageio.write_bytes(tmp_path / "side.json", b"{}")
+    for name in images:
+        direct = write_image(tmp_path / "direct" / name, smooth_image(seed=int(name[3])))
+        assert np.array_equal(read_image(tmp_path / name), read_image(direct))
+    assert (tmp_path / "side.json").read_bytes() == b"{}"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_background_writes_check_input_at_once_and_raise_the_first_write_failure_at_the_end(tmp_path, monkeypatch):
+    with pytest.raises(ImageIOError, match="NaN"):
+        with imageio.background_writes():
+            write_image(tmp_path / "bad.png", np.full((2, 2), np.nan, np.float32))
+    monkeypatch.setattr(Image.Image, "save", lambda self, fp, *a, **k: _fail_after_writing(0)(fp))
+    with pytest.raises(ImageIOError, match="cannot write '.*late.png'") as exc:
+        with imageio.background_writes():
+            write_image(tmp_path / "late.png", smooth_image())
+            imageio.write_bytes(tmp_path / "fine.json", b"{}")
+    assert_one_line_naming(exc, "late.png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fine.json"]

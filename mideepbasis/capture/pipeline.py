@@ -3,8 +3,8 @@
     capturer = Capturer()                      # the shipped model, default settings
     photo = capturer.load("flash_photo.jpg")   # a Photo: linear pixels, field of view, notes
     found = capturer.search(photo)             # the flash offset (SearchResult)
-    output = capturer.predict(photo, found.offset)
-    refined, losses = capturer.refine(output, photo, found.offset)
+    prediction = capturer.predict(photo, found.offset)   # a Prediction: .maps at the photo's size
+    refined, losses = capturer.refine(prediction, photo, found.offset)
     result = capturer.capture("flash_photo.jpg")   # all of it: a CaptureResult
 
 Evaluation and the benchmarks call these stages; every default lives once, in its config
@@ -13,6 +13,7 @@ Evaluation and the benchmarks call these stages; every default lives once, in it
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -114,7 +115,8 @@ class CaptureResult:
     """What the user should know (a crop, the field of view's source, a dark photo)."""
 
     output: DeepBasisOutput | None = None
-    """The network's prediction (weights, bases, ...), refined global bases included."""
+    """The network's prediction (weights, bases, ...) at the network's resolution, refined global
+    bases included (``Prediction.output``)."""
 
     @property
     def offset_angle_deg(self) -> float:
@@ -136,6 +138,39 @@ def network_resolution_limit(model: DeepBasisNet, requested: int | None = None) 
     return model.info.training_size if requested is None else requested or None
 
 
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """The network's prediction for a photo: its output at the network's resolution, shown at the
+    photo's size. Nothing per-basis is held at the photo's size: ``maps`` are blended one basis
+    at a time (``DeepBasisOutput.maps_at``) when first asked for."""
+
+    output: DeepBasisOutput
+    """What the network gave, at the resolution it ran at."""
+
+    size: tuple[int, int]
+    """The photo's (height, width) [pixels]."""
+
+    @functools.cached_property
+    def maps(self) -> torch.Tensor:
+        """(B, 10, H, W) the maps at the photo's size."""
+        return self.output.maps_at(*self.size)
+
+    def compose(self, global_bases: torch.Tensor) -> Prediction:
+        """This prediction with other (say, refined) global bases."""
+        return Prediction(self.output.compose(global_bases), self.size)
+
+
+def predict_small(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
+                  fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None) -> Prediction:
+    """``predict``, its output left at the network's resolution (a ``Prediction``)."""
+    limit = network_resolution_limit(model, network_resolution)
+    height, width = photos.shape[-2:]
+    if limit and max(height, width) > limit:
+        scale = limit / max(height, width)
+        photos = F.interpolate(photos, size=(max(1, round(height * scale)), max(1, round(width * scale))), mode="area")
+    return Prediction(_network_pass(model, photos, lights, fov), (height, width))
+
+
 def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
             fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None) -> DeepBasisOutput:
     """The material seen in ``photos`` (B, 3, H, W) taken with flashes at ``lights`` (B, 3).
@@ -148,13 +183,9 @@ def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
     bigger than in training; on the shared test set the shipped model (trained at 128 px) gave
     lower errors at 128 px upsampled than run at 256 px (benchmarks/model_quality.py).
     """
-    limit = network_resolution_limit(model, network_resolution)
-    height, width = photos.shape[-2:]
-    if not limit or max(height, width) <= limit:
-        return _network_pass(model, photos, lights, fov)
-    scale = limit / max(height, width)
-    small = F.interpolate(photos, size=(max(1, round(height * scale)), max(1, round(width * scale))), mode="area")
-    return _network_pass(model, small, lights, fov).upsample(height, width)
+    prediction = predict_small(model, photos, lights, fov, network_resolution)
+    output = prediction.output
+    return output if tuple(output.maps.shape[-2:]) == prediction.size else output.upsample(*prediction.size)
 
 
 def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor, fov: float) -> DeepBasisOutput:
@@ -230,10 +261,10 @@ class Capturer:
             notes = notes + [f"this model was trained for a {trained:g} deg field of view, the photo has {fov:.1f} deg"]
         return notes
 
-    def predict(self, photo: Photo, offset: tuple[float, float] | torch.Tensor) -> DeepBasisOutput:
+    def predict(self, photo: Photo, offset: tuple[float, float] | torch.Tensor) -> Prediction:
         """The network's prediction for the photo taken with the flash at ``offset`` [patch half-widths]."""
         light = flash_position(offset, photo.fov)
-        return predict(self.model, photo.pixels[None], light[None], photo.fov, self.config.network_resolution)
+        return predict_small(self.model, photo.pixels[None], light[None], photo.fov, self.config.network_resolution)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""
@@ -243,16 +274,17 @@ class Capturer:
         return search_light(predictor, photo.pixels, photo.fov, self.convention, self.model.config.plane_extent,
                             self.config.search)
 
-    def refine(self, output: DeepBasisOutput, photo: Photo, offset: tuple[float, float] | torch.Tensor,
-               progress: bool = False) -> tuple[DeepBasisOutput, list[float]]:
+    def refine(self, prediction: Prediction, photo: Photo, offset: tuple[float, float] | torch.Tensor,
+               progress: bool = False) -> tuple[Prediction, list[float]]:
         """The prediction with its global bases refined against the photo, and the loss at every step;
         the prediction as it is when there is nothing to refine (no steps, or no bases)."""
-        if self.config.refine.steps <= 0 or output.weights is None:
-            return output, []
+        if self.config.refine.steps <= 0 or prediction.output.weights is None:
+            return prediction, []
         light = flash_position(offset, photo.fov)
-        refined, losses = refine_global_bases(output, photo.pixels, light, photo.fov, self.convention,
-                                              self.model.config.plane_extent, self.config.refine, progress)
-        return output.compose(refined), losses
+        refined, losses = refine_global_bases(prediction.output, photo.pixels, light, photo.fov, self.convention,
+                                              self.model.config.plane_extent, self.config.refine, progress,
+                                              size=prediction.size)
+        return prediction.compose(refined), losses
 
     def capture(self, image: str | Path | torch.Tensor, progress: bool = False) -> CaptureResult:
         """Capture a material from one flash photo: a file, or a (3, H, W) linear tensor."""
@@ -270,14 +302,16 @@ class Capturer:
             start = time.perf_counter()
         else:
             offset = (float(config.light[0]), float(config.light[1]))
-        output = self.predict(photo, offset)
+        prediction = self.predict(photo, offset)
         timings["predict"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        output, losses = self.refine(output, photo, offset, progress)
+        prediction, losses = self.refine(prediction, photo, offset, progress)
         if losses:
             timings["refine"] = time.perf_counter() - start
-        maps = output.maps.cpu()
+        start = time.perf_counter()
+        maps = prediction.maps.cpu()
+        timings["blend"] = time.perf_counter() - start
         if config.tileable:
             from ..tiling import make_tileable
 
@@ -290,7 +324,7 @@ class Capturer:
                                                                 "tileable": config.tileable}})
         return CaptureResult(material=material, photo=photo.pixels, offset=offset, fov=photo.fov,
                              fov_source=photo.fov_source, searched=config.light is None, search_history=history,
-                             refinement_losses=losses, timings=timings, notes=photo.notes, output=output)
+                             refinement_losses=losses, timings=timings, notes=photo.notes, output=prediction.output)
 
 
 def capture(image: str | Path | torch.Tensor, model: DeepBasisNet | str | Path | None = None,

@@ -16,7 +16,7 @@ import torch
 
 from .. import constants
 from ..configs import positive_int
-from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps
+from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps, upsample_bilinear
 from .search import downsample
 
 
@@ -71,18 +71,29 @@ class SmallAdam:
         self.parameter.addcdiv_(self.exp_avg, denominator, value=-self.lr / bias_correction1)
 
 
-def local_deviations(output: DeepBasisOutput) -> torch.Tensor:
-    """The local deviations (B, N, 10, H, W), or zeros for a network without local bases."""
-    if output.deviations is not None:
-        return output.deviations
-    batch, n = output.global_bases.shape[:2]
-    return output.global_bases.new_zeros(batch, n, constants.BASIS_CHANNELS, 1, 1).expand(
-        -1, -1, -1, *output.weights.shape[-2:])
+def refinement_inputs(output: DeepBasisOutput, resolution: int, size: tuple[int, int] | None = None
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The weights (1, N, r, r) and local deviations (1, N, 10, r, r) that the refinement renders
+    at ``resolution`` r: those of the prediction shown at ``size`` (its own when None; a larger
+    one upsamples them bilinearly first, one basis at a time, as ``DeepBasisOutput.maps_at``
+    does), area-averaged to r. Zeros for a network without local bases."""
+    def resample(value: torch.Tensor) -> torch.Tensor:
+        if size is not None and tuple(value.shape[-2:]) != tuple(size):
+            value = upsample_bilinear(value, *size)
+        return downsample(value, resolution)
+
+    weights = resample(output.weights.detach().cpu())
+    weights = weights / weights.sum(dim=1, keepdim=True).clamp(min=1e-6)
+    if output.deviations is None:
+        batch, n = output.global_bases.shape[:2]
+        return weights, weights.new_zeros(batch, n, constants.BASIS_CHANNELS, resolution, resolution)
+    deviations = torch.stack([resample(deviation) for deviation in output.deviations.detach().cpu().unbind(1)], dim=1)
+    return weights, deviations
 
 
 def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: torch.Tensor, fov: float,
                         convention: str, extent: float = 1.0, config: RefineConfig = RefineConfig(),
-                        progress: bool = False) -> tuple[torch.Tensor, list[float]]:
+                        progress: bool = False, size: tuple[int, int] | None = None) -> tuple[torch.Tensor, list[float]]:
     """Optimise the global bases so the rendering matches the photo; weights and deviations stay fixed.
 
     The loss is the mean L1 between the rendering and the photo, plus ``config.prior`` times the
@@ -94,6 +105,8 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
         fov, convention, extent: the camera's field of view [deg], the shading convention and the
             half-width of the sample [patch half-widths].
         config: steps, render resolution, learning rate, whether the normals move, the prior.
+        size: the size (H, W) the prediction is shown at, when its tensors are smaller (the
+            network's resolution): ``refinement_inputs``.
 
     Returns:
         ((1, N, 10) refined global bases, signed space; the loss at every step).
@@ -103,9 +116,7 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     from ..render import render_flash
 
     resolution = config.resolution
-    weights = downsample(output.weights.detach().cpu(), resolution)
-    weights = weights / weights.sum(dim=1, keepdim=True).clamp(min=1e-6)
-    deviations = downsample(local_deviations(output).detach().cpu(), resolution)
+    weights, deviations = refinement_inputs(output, resolution, size)
     target = downsample(photo[None], resolution)
     lights = light.view(1, 1, 3)
     predicted = output.global_bases.detach().cpu()

@@ -103,13 +103,13 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
             offset, history = found.offset, found.history
         else:
             offset, history = offsets[index], []
-        output = capturer.predict(photo, offset)
-        plain.append(output.maps.cpu())
+        prediction = capturer.predict(photo, offset)
+        plain.append(prediction.maps.cpu())
         seconds = time.perf_counter() - started
         refine_seconds = 0.0
-        if refine_steps and output.weights is not None:
+        if refine_steps and prediction.output.weights is not None:
             started = time.perf_counter()
-            refined, _ = capturer.refine(output, photo, offset)
+            refined, _ = capturer.refine(prediction, photo, offset)
             refined_maps.append(refined.maps.cpu())
             refine_seconds = time.perf_counter() - started
         details.append({"light_error_deg": light_error_deg(torch.as_tensor(offset).tolist(), offsets[index].tolist(), fov),
