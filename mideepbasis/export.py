@@ -263,11 +263,13 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
             write_bytes(staging / "material.gltf", _json_bytes(gltf))
             from .interchange import usd_available, write_materialx, write_usd
 
-            write_materialx(staging, specular_color(material)[1])
+            specular_factor = gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0]
+            write_materialx(staging, specular_factor)
             if usd_available():
                 write_usd(staging)
-            capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,
-                           rerender_rmse=float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt()))
+        # The report reads the written maps (its relighting viewer embeds them): after the writes.
+        capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,
+                       rerender_rmse=float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt()))
         if out.exists():
             shutil.rmtree(out)
         os.replace(staging, out)

@@ -11,6 +11,7 @@ problem. Every write is atomic: a temporary file in the target folder, moved int
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import contextvars
 import os
@@ -413,6 +414,10 @@ def _submit(function: Callable[[], Path], path: Path) -> Path:
     if background is None:
         return function()
     pool, writes = background
+    # At most two writes wait per thread: each holds its image (48 MB at 2048 x 2048).
+    pending = [write for write in writes if not write.done()]
+    if len(pending) >= 3 * pool._max_workers:
+        concurrent.futures.wait(pending[:len(pending) - 3 * pool._max_workers + 1])
     writes.append(pool.submit(function))
     return path
 

@@ -438,26 +438,40 @@ class Material:
             ``base_color`` (3, H, W) linear [0, 1], ``metallic`` (1, H, W) [0, 1],
             ``roughness`` (1, H, W) [0, 1].
         """
-        # float64: the estimates divide by m and 1 - m.
-        d, s = self.diffuse.double(), self.specular.double()
-        weights = torch.tensor(_LUMINANCE, dtype=torch.float64).reshape(3, 1, 1)
-        lum_d, lum_s = (weights * d).sum(0, keepdim=True), (weights * s).sum(0, keepdim=True)
-        f0 = float(dielectric_f0)
-        excess = (lum_s - f0).clamp(min=0)
-        b = lum_d + lum_s - 2 * f0
-        denominator = b + torch.sqrt(b * b + 4 * f0 * excess)
-        metallic = torch.where(excess > 1e-9, 2 * excess / denominator.clamp(min=1e-12), torch.zeros_like(b))
-        metallic = metallic.clamp(0, 1)
+        base_color = torch.empty_like(self.diffuse)
+        metallic = torch.empty_like(self.roughness)
+        # float64 (the estimates divide by m and 1 - m) a band of rows at a time: a 2048 x 2048
+        # material in one piece would take 0.8 GB of float64 temporaries.
+        for top in range(0, self.height, _PBR_BAND_ROWS):
+            rows = slice(top, top + _PBR_BAND_ROWS)
+            base_color[:, rows], metallic[:, rows] = _metallic_roughness(self.diffuse[:, rows], self.specular[:, rows],
+                                                                         dielectric_f0)
+        return {"base_color": base_color, "metallic": metallic, "roughness": self.roughness.clone()}
 
-        eps = 1e-9
-        from_diffuse = (d / (1 - metallic).clamp(min=eps)).clamp(0, 1)
-        from_specular = ((s - f0 * (1 - metallic)) / metallic.clamp(min=eps)).clamp(0, 1)
-        base = (1 - metallic) * from_diffuse + metallic * from_specular
-        return {
-            "base_color": base.clamp(0, 1).float(),
-            "metallic": metallic.float(),
-            "roughness": self.roughness.clone(),
-        }
+
+#: Rows of the material ``Material.to_pbr`` converts at a time.
+_PBR_BAND_ROWS = 256
+
+
+def _metallic_roughness(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0: float
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(base colour (3, h, w), metallic (1, h, w)) of diffuse and specular (3, h, w): the
+    arithmetic of ``Material.to_pbr``, in float64."""
+    d, s = diffuse.double(), specular.double()
+    weights = torch.tensor(_LUMINANCE, dtype=torch.float64).reshape(3, 1, 1)
+    lum_d, lum_s = (weights * d).sum(0, keepdim=True), (weights * s).sum(0, keepdim=True)
+    f0 = float(dielectric_f0)
+    excess = (lum_s - f0).clamp(min=0)
+    b = lum_d + lum_s - 2 * f0
+    denominator = b + torch.sqrt(b * b + 4 * f0 * excess)
+    metallic = torch.where(excess > 1e-9, 2 * excess / denominator.clamp(min=1e-12), torch.zeros_like(b))
+    metallic = metallic.clamp(0, 1)
+
+    eps = 1e-9
+    from_diffuse = (d / (1 - metallic).clamp(min=eps)).clamp(0, 1)
+    from_specular = ((s - f0 * (1 - metallic)) / metallic.clamp(min=eps)).clamp(0, 1)
+    base = (1 - metallic) * from_diffuse + metallic * from_specular
+    return base.clamp(0, 1).float(), metallic.float()
 
 
 # --- helpers ---------------------------------------------------------------------------------------

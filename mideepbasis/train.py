@@ -144,6 +144,10 @@ class TrainConfig:
     validation_count: int = field(default=32, metadata={"parse": positive_int})
     """Held-out procedural materials (fixed seeds, never drawn in training) of each validation."""
 
+    train_only: tuple[str, ...] = ()
+    """Train only these parts of the network (``TRAINABLE_PARTS``: e.g. ``normal_unit``); the
+    others keep the weights the run starts with (``init``) and get no gradient. Empty: all."""
+
     max_minutes: float = 0.0
     """Stop after this much training wall time in this process [minutes], with a resumable
     checkpoint (0: no limit); the schedule still runs to ``steps``."""
@@ -162,6 +166,10 @@ class TrainConfig:
         self.data = tuple(self.data)
         if not self.data:
             raise ValueError("no material sources (data): give procedural and/or folders")
+        self.train_only = tuple(self.train_only)
+        unknown = sorted(set(self.train_only) - set(TRAINABLE_PARTS))
+        if unknown:
+            raise ValueError(f"unknown network parts {unknown} to train; expected some of {list(TRAINABLE_PARTS)}")
 
     @classmethod
     def from_dict(cls, values: dict, source: str = "checkpoint", network: dict | None = None) -> TrainConfig:
@@ -186,6 +194,9 @@ class TrainConfig:
 #: loads everything else and starts the local unit afresh.
 LOCAL_UNIT_FIELDS = ("local_width", "local_encoder_blocks", "local_middle_blocks", "local_decoder_blocks",
                      "local_ending_kernel")
+
+#: Parts of DeepBasisNet (its top-level modules) that ``train_only`` may name.
+TRAINABLE_PARTS = ("encoder", "weight_decoder", "global_unit", "local_unit", "normal_unit")
 
 #: Settings a resumed run may change: where and how it runs, not what it learns.
 RESUMABLE_CHANGES = frozenset({"out", "workers", "checkpoint_minutes", "log_every", "validate_every", "device",
@@ -462,13 +473,20 @@ class Trainer:
 
         set_render_backend(config.render_backend)
         self.model = DeepBasisNet(network_config).to(self.device)
-        local = [p for n, p in self.model.named_parameters() if n.startswith("local_unit.")]
-        rest = [p for n, p in self.model.named_parameters() if not n.startswith("local_unit.")]
-        groups = [{"params": rest, "lr": config.lr, "initial_lr": config.lr}]
+        for name, parameter in self.model.named_parameters():
+            if config.train_only and name.split(".")[0] not in config.train_only:
+                parameter.requires_grad_(False)
+        trained = [(n, p) for n, p in self.model.named_parameters() if p.requires_grad]
+        if not trained:
+            raise InputError(f"this network has none of the parts {list(config.train_only)} to train")
+        # The per-pixel units learn faster (the paper trains its local unit faster too).
+        local = [p for n, p in trained if n.startswith(("local_unit.", "normal_unit."))]
+        rest = [p for n, p in trained if not n.startswith(("local_unit.", "normal_unit."))]
+        groups = [{"params": rest, "lr": config.lr, "initial_lr": config.lr}] if rest else []
         if local:
             groups.append({"params": local, "lr": config.local_lr, "initial_lr": config.local_lr})
         self.optimizer = torch.optim.Adam(groups)
-        self.parameter_names = {p: n for n, p in self.model.named_parameters()}
+        self.parameter_names = {p: n for n, p in trained}
         self.generator = torch.Generator().manual_seed(config.seed * 1_000_003 + self.rank)
         self.step = 0
         self.elapsed = 0.0
@@ -498,13 +516,19 @@ class Trainer:
         source = load_model(path)
         config = self.model.config
         local_fields = {name: getattr(config, name) for name in LOCAL_UNIT_FIELDS}
-        if replace(source.config, extra_inputs=config.extra_inputs, **local_fields) != config:
+        if replace(source.config, extra_inputs=config.extra_inputs, normal_unit_width=config.normal_unit_width,
+                   **local_fields) != config:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
-                             "preset) in more than the optional inputs and the local unit's size")
+                             "preset) in more than the optional inputs and the sizes of the local and normal units")
         state, target = source.state_dict(), self.model.state_dict()
+        fresh = []
         if any(getattr(source.config, name) != value for name, value in local_fields.items()):
-            state = {name: value for name, value in state.items() if not name.startswith("local_unit.")}
-            state.update({name: value for name, value in target.items() if name.startswith("local_unit.")})
+            fresh.append("local_unit.")
+        if source.config.normal_unit_width != config.normal_unit_width:
+            fresh.append("normal_unit.")
+        if fresh:  # those units start afresh
+            state = {name: value for name, value in state.items() if not name.startswith(tuple(fresh))}
+            state.update({name: value for name, value in target.items() if name.startswith(tuple(fresh))})
         if source.config.extra_inputs != config.extra_inputs:
             state = widen_inputs(state, target, source.config.input_channels)
         self.model.load_state_dict(state)

@@ -299,3 +299,23 @@ def test_widened_inputs_start_as_the_narrow_network():
     assert preset("tiny", extra_inputs=("shading",)).input_channels == 12
     with pytest.raises(ValueError, match="unknown extra inputs \\['shadow'\\]"):
         preset("tiny", extra_inputs=("shadow",))
+
+
+def test_train_only_the_normal_unit_from_a_network_without_one(tmp_path):
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    source = DeepBasisNet(preset("tiny"))
+    path = save_checkpoint(tmp_path / "source.safetensors", source)
+    trainer = Trainer(tiny_config(tmp_path, init=str(path), network={"normal_unit_width": 4},
+                                  train_only=("normal_unit",), vc_weight=0.0), progress=False)
+    before = {name: value.clone() for name, value in trainer.model.state_dict().items()}
+    trainer.run()
+    after = trainer.model.state_dict()
+    changed = {name.split(".")[0] for name in after if not torch.equal(before[name], after[name])}
+    assert changed == {"normal_unit"}
+    assert all(torch.equal(after[name], value) for name, value in source.state_dict().items())
+    assert load_model(tmp_path / "run" / "model.safetensors").config.normal_unit_width == 4
+    with pytest.raises(ValueError, match="unknown network parts \\['decoder'\\]"):
+        tiny_config(tmp_path, train_only=("decoder",))

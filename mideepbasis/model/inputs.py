@@ -159,6 +159,39 @@ def extra_input_channels(photo: torch.Tensor, names: tuple[str, ...], falloff: t
     return torch.cat(channels, dim=1) if channels else photo.new_zeros(photo.shape[0], 0, *photo.shape[-2:])
 
 
+#: Channels of ``relief_inputs``: log photo (3), shading (1), its high-pass (1), flash direction (2).
+RELIEF_CHANNELS = 7
+
+
+def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG,
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
+    """The input of the normal unit (``NetworkConfig.normal_unit_width``): what a relief changes in a
+    flash photo, made explicit. A small tilt t of the normal changes the shading by about
+    t . l_xy, the flash direction's component in the sample plane, so the unit gets:
+
+    - the log-compressed photo, in [-1, 1] (3 channels);
+    - the shading: 0.3 log(luminance / falloff), the falloff a white Lambertian under the same
+      flash (``flash_falloff``), so the flash's own gradient is gone (1);
+    - its high-pass, minus a Gaussian blur of sigma 1/64 of the width (1);
+    - 3 l_x and 3 l_y, the unit vector from each pixel's point towards the flash (2).
+
+    Args:
+        photo: (B, 3, H, W) linear, clipped to [0, 1]; lights: (B, 3) flash positions [patch half-widths].
+
+    Returns:
+        (B, RELIEF_CHANNELS, H, W).
+    """
+    batch, _, height, width = photo.shape
+    photo = photo.clamp(0.0, 1.0)
+    falloff = flash_falloff(lights, height, width, fov, convention, extent).to(photo)
+    shading = torch.log(photo.mean(dim=1, keepdim=True) + LOG_EPS) - torch.log(falloff + LOG_EPS)
+    highpass = shading - _gaussian_blur(shading, max(0.5, width / 64.0))
+    points = geometry.pixel_points(height, width, device=photo.device, dtype=photo.dtype)[None] * extent
+    towards = lights.to(photo).view(batch, 3, 1, 1) - points
+    direction = towards / torch.linalg.vector_norm(towards, dim=1, keepdim=True)
+    return torch.cat([log_compress(photo) * 2.0 - 1.0, 0.3 * shading, highpass, 3.0 * direction[:, :2]], dim=1)
+
+
 def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of (B, C, H, W), edges reflected."""
     radius = max(1, int(3 * sigma))

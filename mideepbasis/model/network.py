@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .. import constants
-from .inputs import EXTRA_INPUTS, ModelInfo, decode_photo, input_channels
+from .inputs import EXTRA_INPUTS, RELIEF_CHANNELS, ModelInfo, decode_photo, input_channels, relief_inputs
 from .nafnet import NAFNet
 
 
@@ -90,10 +90,19 @@ class NetworkConfig:
     """Half-width of the sample the camera frames [patch half-widths] for the error map's render:
     1 in this project; 384 / 383 for the authors' networks, whose pixels sit 3 / 383 apart."""
 
+    normal_unit_width: int = 0
+    """Channels of the first level of the normal unit (0: none; not in the paper): a NAFNet that reads
+    the photo's shading beside the flash direction (``model.inputs.relief_inputs``) and predicts a
+    per-pixel slope of the normal, added to the normal deviation of every basis. It needs the local
+    unit. (A separately trained 1.6M-parameter unit beat the flat normal on the shared test set
+    where the whole network, trained for its maps, had stayed flat: MODEL.md.)"""
+
     def __post_init__(self):
         unknown = sorted(set(self.extra_inputs) - set(EXTRA_INPUTS))
         if unknown:
             raise ValueError(f"unknown extra inputs {unknown}; expected some of {list(EXTRA_INPUTS)}")
+        if self.normal_unit_width and not (self.use_bases and self.use_local):
+            raise ValueError("the normal unit adds to the local deviations: it needs use_bases and use_local")
 
     @property
     def input_channels(self) -> int:
@@ -104,6 +113,10 @@ class NetworkConfig:
     def stride(self) -> int:
         """Input sizes must be multiples of this [pixels]."""
         return 2 ** len(self.encoder_channels)
+
+
+#: NAF blocks per level of the normal unit (four levels, two blocks at the bottom).
+NORMAL_UNIT_BLOCKS = (1, 1, 1, 1)
 
 
 PRESETS = {
@@ -386,9 +399,20 @@ class DeepBasisOutput:
             return self.maps
         if self.weights is None or self.deviations is None:
             return self.upsample(height, width).maps
-        weights = upsample_bilinear(self.weights, height, width)
-        deviations = (upsample_bilinear(deviation, height, width) for deviation in self.deviations.unbind(1))
-        return to_maps(streamed_blend(weights, self.global_bases.to(weights.device), deviations))
+        with torch.no_grad():
+            weights = upsample_bilinear(self.weights, height, width)
+            total = None
+            for weight, base, deviation in zip(weights.unbind(1), self.global_bases.to(weights.device).unbind(1),
+                                               self.deviations.unbind(1)):
+                # streamed_blend's arithmetic, in place on the one upsampled basis: four
+                # full-size buffers live at a time instead of eight.
+                basis = upsample_bilinear(deviation, height, width).add_(base[..., None, None])
+                normal = basis[:, constants.NORMAL]
+                normal.div_(normal.square().sum(dim=1, keepdim=True).sqrt_().add_(1e-12))
+                term = basis.clamp_(-1.0, 1.0).mul_(weight.unsqueeze(1))
+                total = term if total is None else total.add_(term)
+                del basis, normal, term
+            return to_maps(total)
 
     def split(self, batch: int) -> tuple[DeepBasisOutput, DeepBasisOutput]:
         """The first ``batch`` items and the rest, as two outputs."""
@@ -426,6 +450,9 @@ class DeepBasisNet(nn.Module):
             self.local_unit = NAFNet(local_in, n * constants.BASIS_CHANNELS, config.local_width,
                                      config.local_encoder_blocks, config.local_middle_blocks, config.local_decoder_blocks,
                                      config.local_ending_kernel)
+        if config.normal_unit_width:
+            self.normal_unit = NAFNet(RELIEF_CHANNELS, 2, config.normal_unit_width, NORMAL_UNIT_BLOCKS, 2,
+                                      NORMAL_UNIT_BLOCKS, 3)
 
     def forward(self, inputs: torch.Tensor, lights: torch.Tensor | None = None,
                 fov: float = constants.DEFAULT_FOV_DEG) -> DeepBasisOutput:
@@ -468,6 +495,12 @@ class DeepBasisNet(nn.Module):
         local_inputs = torch.cat([inputs, error, weights], dim=1)
         deviations = torch.tanh(self.local_unit(local_inputs, planes=global_bases.reshape(batch, -1)))
         deviations = deviations.view(batch, n, constants.BASIS_CHANNELS, height, width)
+        if hasattr(self, "normal_unit"):
+            relief = relief_inputs(photo.float(), lights.view(batch, 3).float(), fov, config.convention,
+                                   config.plane_extent).to(inputs.dtype)
+            slope = torch.tanh(self.normal_unit(relief))  # (B, 2, H, W): the x and y of the normal
+            shared = torch.cat([slope, slope.new_zeros(batch, constants.BASIS_CHANNELS - 2, height, width)], dim=1)
+            deviations = deviations + shared[:, None]
         return DeepBasisOutput.from_bases(weights, global_bases, deviations, error=error, extras=extras)
 
 

@@ -66,3 +66,25 @@ def test_decode_photo_inverts_the_photo_channels_and_the_layout_counts_channels(
     assert inputs.input_channels(("shading", "highpass")) == 15
     # The log photo sits where the layout says: log_compress of the photo, mapped to [-1, 1].
     torch.testing.assert_close(encoded[:, inputs.LOG_PHOTO], inputs.log_compress(photo) * 2 - 1)
+
+
+def test_relief_inputs_by_hand():
+    lights = geometry.light_positions(torch.tensor([[0.3, -0.2], [0.0, 0.0]]))
+    falloff = inputs.flash_falloff(lights, 16, 16)
+    # A white Lambertian photographed under its own flash has no shading left, nor detail.
+    relief = inputs.relief_inputs(falloff.expand(2, 3, 16, 16), lights)
+    assert relief.shape == (2, inputs.RELIEF_CHANNELS, 16, 16)
+    assert relief[:, 3:5].abs().max() < 1e-5
+    torch.testing.assert_close(relief[:, :3], inputs.log_compress(falloff.expand(2, 3, 16, 16)) * 2 - 1)
+    # Twice as bright a photo: the shading channel rises by 0.3 log 2 (up to the log's epsilon).
+    darker = falloff.expand(2, 3, 16, 16) * 0.25
+    rise = inputs.relief_inputs(darker * 2, lights)[:, 3] - inputs.relief_inputs(darker, lights)[:, 3]
+    expected = 0.3 * (torch.log(darker[:, 0] * 2 + inputs.LOG_EPS) - torch.log(darker[:, 0] + inputs.LOG_EPS))
+    torch.testing.assert_close(rise, expected, rtol=1e-5, atol=1e-6)
+    # The last two channels: 3 times the x and y of the unit vector from the pixel's point to the flash.
+    row, col = 3, 12
+    point = torch.tensor([(2 * col + 1) / 16 - 1, 1 - (2 * row + 1) / 16, 0.0])
+    towards = lights[0] - point
+    torch.testing.assert_close(relief[0, 5:, row, col], 3 * (towards / towards.norm())[:2])
+    # Under a centred flash the pixels left of the centre see the flash to their right (+x).
+    assert (relief[1, 5, :, :8] > 0).all() and (relief[1, 5, :, 8:] < 0).all()

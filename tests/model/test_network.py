@@ -109,3 +109,27 @@ def test_preset_sizes():
     assert paper.local_unit.intro.out_channels == 16
     assert [len(e) for e in paper.local_unit.encoders] == [2, 2, 4, 8] and len(paper.local_unit.middle_blks) == 12
     assert paper.local_unit.intro.in_channels == 9 + 3 + 10 + 100
+
+
+def test_the_normal_unit_adds_its_slope_to_the_normal_deviation_of_every_basis():
+    from mideepbasis.model.inputs import relief_inputs
+
+    torch.manual_seed(0)
+    plain = DeepBasisNet(preset("tiny")).eval()
+    with_unit = DeepBasisNet(preset("tiny", normal_unit_width=4)).eval()
+    missing, unexpected = with_unit.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(name.startswith("normal_unit.") for name in missing)
+    for parameter in with_unit.normal_unit.parameters():  # away from the identity-initialised blocks
+        parameter.data.normal_(0.0, 0.3)
+    inputs = torch.rand(2, 9, 32, 32) * 2 - 1
+    lights = torch.tensor([[0.1, 0.0, 2.4], [0.0, -0.2, 2.4]])
+    with torch.no_grad():
+        a, b = plain(inputs, lights), with_unit(inputs, lights)
+        slope = torch.tanh(with_unit.normal_unit(relief_inputs(inputs[:, :3] * 0.5 + 0.5, lights)))
+    assert slope.abs().max() > 0.1
+    added = b.deviations - a.deviations
+    torch.testing.assert_close(added[:, :, :2], slope[:, None].expand(-1, added.shape[1], -1, -1, -1))
+    assert torch.equal(added[:, :, 2:], torch.zeros_like(added[:, :, 2:]))
+    assert torch.equal(a.weights, b.weights) and torch.equal(a.global_bases, b.global_bases)
+    with pytest.raises(ValueError, match="needs use_bases and use_local"):
+        preset("tiny", normal_unit_width=4, use_local=False)
