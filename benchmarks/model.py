@@ -1,6 +1,6 @@
 """Network size and speed: parameters and forward time of each preset, training steps per second.
 
-    .venv/bin/python benchmarks/model.py [--sizes 256 1024] [--train-steps 4] [-o benchmarks/results/model.json]
+    .venv/bin/python benchmarks/model.py [--sizes 256 1024] [--train-steps 4] [--forward-only] [-o benchmarks/results/model.json]
 
 Forward times are warm medians (inference, no gradients, the error-map render included) on this
 machine's cores; training speed is measured with the real loop (synthesis, both passes of the
@@ -25,9 +25,14 @@ from mideepbasis.model.network import DeepBasisNet, count_parameters, preset
 TARGETS = {"compact_parameters": 4_000_000, "compact_forward_256_ms": 150.0}
 
 
-def forward_ms(name: str, size: int, repeats: int) -> float:
+#: Networks whose size and forward time are measured: name -> (preset, overrides).
+NETWORKS = {"compact": ("compact", {}), "compact_normal_unit16": ("compact", {"normal_unit_width": 16}),
+            "paper": ("paper", {})}
+
+
+def forward_ms(name: str, size: int, repeats: int, **overrides) -> float:
     torch.manual_seed(0)
-    model = DeepBasisNet(preset(name)).eval()
+    model = DeepBasisNet(preset(name, **overrides)).eval()
     inputs = torch.rand(1, 9, size, size) * 2 - 1
     lights = geometry.light_positions(torch.zeros(1, 2))
     runs = []
@@ -71,15 +76,19 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--train-steps", type=int, default=4)
     parser.add_argument("--train-batch", type=int, default=8)
+    parser.add_argument("--forward-only", action="store_true", help="sizes and forward times only")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "model.json")
     args = parser.parse_args()
 
     presets = {}
-    for name in ("compact", "paper"):
-        presets[name] = {"parameters": count_parameters(DeepBasisNet(preset(name))),
-                         "forward_ms": {str(size): forward_ms(name, size, args.repeats if size <= 256 else 2)
+    for name, (base, overrides) in NETWORKS.items():
+        presets[name] = {"parameters": count_parameters(DeepBasisNet(preset(base, **overrides))),
+                         "forward_ms": {str(size): forward_ms(base, size, args.repeats if size <= 256 else 2, **overrides)
                                         for size in args.sizes}}
         print(name, presets[name])
+    if args.forward_only:
+        write_report(args.output, "model", {"targets": TARGETS, "presets": presets})
+        return
     training = {f"compact_{size}px_batch{args.train_batch}": training_steps_per_second(size, args.train_batch, args.train_steps)
                 for size in (128, 256)}
     settings = {}
