@@ -33,6 +33,11 @@ VARIANTS = {
     # to 0.014 in 300 steps where the shipped width 8 reached 0.066 (MODEL.md, 2026-11-30).
     "local16": ["--render-weight", "0", "--network-local-width", "16"],
     "local24": ["--render-weight", "0", "--network-local-width", "24"],
+    # The normal unit (relief inputs, a slope shared by the bases): alone, the rest frozen as
+    # --init loaded it, and trained with everything else (MODEL.md, 2026-11-30 second session).
+    "normal_unit": ["--render-weight", "0", "--vc-weight", "0", "--network-normal-unit-width", "16",
+                    "--train-only", "normal_unit"],
+    "normal_unit_all": ["--render-weight", "0", "--network-normal-unit-width", "16"],
 }
 
 COMMON = ["--preset", "compact", "--data", "procedural", "--render-backend", "torch", "--bf16",
@@ -83,7 +88,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=7.5, help="wall time of the real runs [minutes]")
     parser.add_argument("--calibration-minutes", type=float, default=0.75)
-    parser.add_argument("--variants", nargs="+", default=["map", "shading_highpass", "local24"],
+    parser.add_argument("--variants", nargs="+", default=["normal_unit", "normal_unit_all", "local24"],
                         choices=list(VARIANTS))
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--lr", type=float, default=5e-4)
