@@ -84,7 +84,7 @@ def main() -> None:
     for name, (base, overrides) in NETWORKS.items():
         presets[name] = {"parameters": count_parameters(DeepBasisNet(preset(base, **overrides))),
                          "forward_ms": {str(size): forward_ms(base, size, args.repeats if size <= 256 else 2, **overrides)
-                                        for size in args.sizes}}
+                                        for size in args.sizes if size % preset(base).stride == 0}}
         print(name, presets[name])
     if args.forward_only:
         write_report(args.output, "model", {"targets": TARGETS, "presets": presets})
