@@ -20,7 +20,7 @@ from pathlib import Path
 
 import mideepbasis  # noqa: F401
 import torch
-from common import RESULTS, write_report
+from common import RESULTS, SHARED_TEST, write_report
 
 from mideepbasis.evaluation import (PAPER_DEEPBASIS, RERENDER_COUNT, EvaluationConfig, load_evaluation_set,
                                     random_lights_and_views, resize_maps, run_evaluation, score, summary_scores,
@@ -28,7 +28,6 @@ from mideepbasis.evaluation import (PAPER_DEEPBASIS, RERENDER_COUNT, EvaluationC
 from mideepbasis.train import TrainConfig, train
 
 HERE = Path(__file__).parent
-SHARED_TEST = HERE.parents[1] / "shared" / "data" / "deschaintre2018-test"
 
 #: variant -> (network overrides, VC-loss weight or None for the default)
 VARIANTS = {

@@ -11,6 +11,9 @@ from pathlib import Path
 #: Folder of the JSON results (and figures) of the benchmarks.
 RESULTS = Path(__file__).parent / "results"
 
+#: The 84 shared test materials (../shared/data beside the repository; read-only, evaluation only).
+SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
+
 
 def machine() -> dict:
     """Platform, processor and core count of this machine."""

@@ -27,11 +27,10 @@ from pathlib import Path
 import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 import numpy as np
 import torch
-from common import RESULTS, save_figure, write_report
+from common import RESULTS, SHARED_TEST, save_figure, write_report
 
 from mideepbasis import constants
 
-SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 
 #: Targets of the issue.
 TARGETS = {"generator_materials_per_second": 20.0, "synthesis_pairs_per_second": 16.0}

@@ -19,14 +19,13 @@ from pathlib import Path
 
 import mideepbasis  # noqa: F401
 import torch
-from common import RESULTS, write_report
+from common import RESULTS, SHARED_TEST, write_report
 
 from mideepbasis.capture import network_resolution_limit, predict
 from mideepbasis.data.datasets import DeschaintreDataset
 from mideepbasis.evaluation import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
 from mideepbasis.model.checkpoint import load_model, shipped_model_path
 
-SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 PAPER = {"normal": 0.053, "diffuse": 0.031, "roughness": 0.162, "specular": 0.043}
 
 

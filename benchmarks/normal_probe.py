@@ -27,19 +27,17 @@ from pathlib import Path
 import mideepbasis  # noqa: F401
 import torch
 import torch.nn.functional as F
-from common import RESULTS, write_report
+from common import RESULTS, SHARED_TEST, write_report
 
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import SynthesisConfig, synthesize
-from mideepbasis.model.inputs import RELIEF_CHANNELS, _gaussian_blur, relief_inputs
-from mideepbasis.model.nafnet import NAFNet
-from mideepbasis.model.network import NORMAL_UNIT_BLOCKS
+from mideepbasis.model.inputs import _gaussian_blur, relief_inputs
+from mideepbasis.model.network import normal_unit
 from mideepbasis.train import VALIDATION_SEED
 
 SIZE, CROP, BATCH, POOL = 128, 64, 16, 512
 #: First seed of the probe's training pool (far from the validation seeds, 1e9 + i).
 POOL_SEED = 7000
-SHARED_SET = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "deschaintre2018-test"
 
 
 def photographed(seeds, generator_seed: int, validation: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
@@ -86,7 +84,8 @@ def quadratic_features(relief: torch.Tensor) -> torch.Tensor:
 def linear_probe(train_x, train_n):
     """A predictor of normals from relief inputs: ridge regression on ``quadratic_features``."""
     def rows(x):
-        return quadratic_features(x).permute(0, 2, 3, 1).reshape(-1, quadratic_features(x[:1]).shape[1]).double()
+        features = quadratic_features(x)
+        return features.permute(0, 2, 3, 1).reshape(-1, features.shape[1]).double()
 
     features = rows(train_x)[::7]
     targets = train_n[:, :2].permute(0, 2, 3, 1).reshape(-1, 2).double()[::7]
@@ -106,7 +105,7 @@ def linear_probe(train_x, train_n):
 def unit_probe(train_x, train_n, valid_x, valid_n, minutes: float, loss_name: str, log: list):
     """A predictor of normals from relief inputs: the normal unit's NAFNet trained alone."""
     torch.manual_seed(0)
-    network = NAFNet(RELIEF_CHANNELS, 2, 16, NORMAL_UNIT_BLOCKS, 2, NORMAL_UNIT_BLOCKS, 3)
+    network = normal_unit(16)
     optimiser = torch.optim.AdamW(network.parameters(), 1e-3, weight_decay=1e-4)
     generator = torch.Generator().manual_seed(0)
 
@@ -140,12 +139,12 @@ def unit_probe(train_x, train_n, valid_x, valid_n, minutes: float, loss_name: st
 
 def shared_set_rmse(predict) -> dict | None:
     """Per-material mean normal RMSE on the shared set (stored encoding): the probe and flat."""
-    if not SHARED_SET.is_dir():
-        print(f"{SHARED_SET} is absent: no shared-set figures")
+    if not SHARED_TEST.is_dir():
+        print(f"{SHARED_TEST} is absent: no shared-set figures")
         return None
     from mideepbasis.evaluation.protocol import evaluation_offsets, flash_photos, load_evaluation_materials
 
-    materials = load_evaluation_materials(SHARED_SET, "deschaintre5")
+    materials = load_evaluation_materials(SHARED_TEST, "deschaintre5")
     photos, lights = flash_photos(materials.maps, evaluation_offsets(len(materials.maps), 0, 45.0))
     truth = materials.stored[:, :3] * 0.5 + 0.5
     predicted = []

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import mideepbasis  # noqa: F401
 import torch
-from common import RESULTS, write_report
+from common import RESULTS, SHARED_TEST, write_report
 from tqdm import tqdm
 
 from mideepbasis.capture import Capturer, Photo, RefineConfig
@@ -29,7 +29,6 @@ from mideepbasis.evaluation import (EvaluationConfig, evaluation_offsets, flash_
                                     random_lights_and_views, score, summary_scores)
 from mideepbasis.render import render_flash
 
-SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschaintre2018-test"
 
 
 def variants(steps: int) -> dict[str, RefineConfig]:

@@ -115,14 +115,15 @@ def scene_xml(offset: tuple[float, float], fov: float, resolution: int, conventi
 # --- glTF ----------------------------------------------------------------------------------------------
 
 
-def gltf_material(material, folder: Path, name: str = "captured material") -> dict:
+def gltf_material(material, folder: Path, name: str = "captured material", pbr: dict | None = None) -> dict:
     """Write the glTF textures into ``folder`` and return the glTF 2.0 document of a 2 x 2 quad
     lying on the ground (+Y up) with the material: metallic-roughness plus KHR_materials_specular.
 
     Our +x is glTF +X, our +y (the top of the image) is glTF -Z; the normal texture is the
-    material's ``normal.png`` (glTF normal maps are +Y up, as ours).
+    material's ``normal.png`` (glTF normal maps are +Y up, as ours). ``pbr``: the material's
+    ``to_pbr()``, when the caller has it already.
     """
-    pbr = material.to_pbr()
+    pbr = pbr if pbr is not None else material.to_pbr()
     base = pbr["base_color"]
     metallic, roughness = pbr["metallic"], pbr["roughness"]
     zeros = torch.zeros_like(metallic)
@@ -259,12 +260,11 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
                 write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
 
             (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width, material.convention))
-            gltf = gltf_material(material, staging)
-            write_bytes(staging / "material.gltf", _json_bytes(gltf))
+            pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
+            write_bytes(staging / "material.gltf", _json_bytes(gltf_material(material, staging, pbr=pbr)))
             from .interchange import usd_available, write_materialx, write_usd
 
-            specular_factor = gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0]
-            write_materialx(staging, specular_factor)
+            write_materialx(staging, specular_color(material, pbr)[1])
             if usd_available():
                 write_usd(staging)
         # The report reads the written maps (its relighting viewer embeds them): after the writes.

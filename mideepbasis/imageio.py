@@ -381,8 +381,9 @@ _BIT_DEPTHS = {"png": (8, 16), "jpeg": (8,), "exr": (16, 32)}
 #: files 5 % larger (benchmarks/README.md, capture section).
 PNG_COMPRESS_LEVEL = 1
 
-#: The writer of ``background_writes`` in force, if any: (thread pool, the writes it was given).
-_BACKGROUND: contextvars.ContextVar[tuple[ThreadPoolExecutor, list[Future]] | None] = contextvars.ContextVar(
+#: The writer of ``background_writes`` in force, if any: (thread pool, the writes it was given, the
+#: most writes that may be unfinished at once).
+_BACKGROUND: contextvars.ContextVar[tuple[ThreadPoolExecutor, list[Future], int] | None] = contextvars.ContextVar(
     "background_writes", default=None)
 
 
@@ -398,7 +399,8 @@ def background_writes(threads: int = 2) -> Iterator[None]:
         return
     pool = ThreadPoolExecutor(threads, thread_name_prefix="image-writer")
     writes: list[Future] = []
-    token = _BACKGROUND.set((pool, writes))
+    # Each unfinished write holds its image (48 MB at 2048 x 2048): one running and two waiting per thread.
+    token = _BACKGROUND.set((pool, writes, 3 * threads))
     try:
         yield
     finally:
@@ -413,11 +415,10 @@ def _submit(function: Callable[[], Path], path: Path) -> Path:
     background = _BACKGROUND.get()
     if background is None:
         return function()
-    pool, writes = background
-    # At most two writes wait per thread: each holds its image (48 MB at 2048 x 2048).
+    pool, writes, most = background
     pending = [write for write in writes if not write.done()]
-    if len(pending) >= 3 * pool._max_workers:
-        concurrent.futures.wait(pending[:len(pending) - 3 * pool._max_workers + 1])
+    if len(pending) >= most:
+        concurrent.futures.wait(pending[:len(pending) - most + 1])
     writes.append(pool.submit(function))
     return path
 

@@ -507,8 +507,9 @@ class Trainer:
 
     def _initialise_from(self, path: str) -> None:
         """Start from a checkpoint's weights. It may differ from this run's network in the optional
-        inputs (their weights start at zero: ``widen_inputs``) and in the local unit's size (the
-        local unit then starts afresh; everything else is loaded)."""
+        inputs (their weights start at zero: ``widen_inputs``) and in the sizes of the local and the
+        normal units (a unit whose size differs, or that the checkpoint lacks, starts afresh;
+        everything else is loaded)."""
         from dataclasses import replace
 
         from .model.checkpoint import load_model

@@ -119,6 +119,12 @@ class NetworkConfig:
 NORMAL_UNIT_BLOCKS = (1, 1, 1, 1)
 
 
+def normal_unit(width: int) -> NAFNet:
+    """The normal unit's NAFNet (``NetworkConfig.normal_unit_width``): the relief inputs to the
+    normal's x and y slope, before their tanh."""
+    return NAFNet(RELIEF_CHANNELS, 2, width, NORMAL_UNIT_BLOCKS, 2, NORMAL_UNIT_BLOCKS, 3)
+
+
 PRESETS = {
     "paper": NetworkConfig(),
     "compact": NetworkConfig(encoder_channels=(32, 64, 96, 128, 160, 192), decoder_channels=(160, 128, 96, 64, 32),
@@ -451,8 +457,7 @@ class DeepBasisNet(nn.Module):
                                      config.local_encoder_blocks, config.local_middle_blocks, config.local_decoder_blocks,
                                      config.local_ending_kernel)
         if config.normal_unit_width:
-            self.normal_unit = NAFNet(RELIEF_CHANNELS, 2, config.normal_unit_width, NORMAL_UNIT_BLOCKS, 2,
-                                      NORMAL_UNIT_BLOCKS, 3)
+            self.normal_unit = normal_unit(config.normal_unit_width)
 
     def forward(self, inputs: torch.Tensor, lights: torch.Tensor | None = None,
                 fov: float = constants.DEFAULT_FOV_DEG) -> DeepBasisOutput:
