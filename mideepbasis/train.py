@@ -38,6 +38,7 @@ from .configs import differences, positive_int
 from .data.synth import SynthesisConfig, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
+from .model.inputs import RELIEF_CHANNELS, RELIEF_DIRECTION_CHANNEL, decode_photo, relief_inputs
 from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, to_signed
 
 
@@ -152,6 +153,20 @@ class TrainConfig:
     """Stop after this much training wall time in this process [minutes], with a resumable
     checkpoint (0: no limit); the schedule still runs to ``steps``."""
 
+    normal_pool: int = 0
+    """0: every part learns inside the whole network. N > 0: the normal unit alone learns the normal
+    from its relief inputs (``--train-only normal_unit``), with no pass of the rest of the network:
+    random crops (``normal_crop``), mirrored and turned, of a pool of N photographed training
+    materials (``NormalUnitPool``) of which ``normal_pool_refresh`` are replaced each step. Its
+    prediction is taken over a flat rest, as ``DeepBasisNet`` adds it to the bases' normals;
+    validation runs the whole network."""
+
+    normal_pool_refresh: int = field(default=2, metadata={"parse": positive_int})
+    """Materials of the normal pool replaced by new ones each step."""
+
+    normal_crop: int = field(default=64, metadata={"parse": positive_int})
+    """Side of the normal pool's training crops [pixels]."""
+
     def __post_init__(self):
         # Resolve the network and the synthesis now, so that what is stored is what ran.
         if self.network is None or isinstance(self.network, dict):
@@ -170,6 +185,14 @@ class TrainConfig:
         unknown = sorted(set(self.train_only) - set(TRAINABLE_PARTS))
         if unknown:
             raise ValueError(f"unknown network parts {unknown} to train; expected some of {list(TRAINABLE_PARTS)}")
+        if self.normal_pool:
+            if self.train_only != ("normal_unit",) or not self.network.normal_unit_width:
+                raise ValueError("normal_pool trains the normal unit alone: it needs train_only = normal_unit "
+                                 "and a network with a normal unit (network.normal_unit_width)")
+            if self.normal_crop > self.size or self.normal_crop % 16:
+                raise ValueError(f"normal_crop {self.normal_crop} must be a multiple of 16 and at most size {self.size}")
+            if self.normal_pool_refresh > self.normal_pool:
+                raise ValueError("normal_pool_refresh cannot exceed normal_pool")
 
     @classmethod
     def from_dict(cls, values: dict, source: str = "checkpoint", network: dict | None = None) -> TrainConfig:
@@ -268,16 +291,87 @@ def augment(maps: torch.Tensor, size: int, rng: np.random.Generator) -> torch.Te
     else:
         top, left = int(rng.integers(height - size + 1)), int(rng.integers(width - size + 1))
         maps = maps[:, top:top + size, left:left + size]
-    maps = maps.clone()
-    if rng.random() < 0.5:  # mirror left-right: x flips
-        maps = maps.flip(-1)
-        maps[0] = -maps[0]
-    for _ in range(int(rng.integers(4))):  # quarter turn counter-clockwise: (x, y) -> (-y, x)
-        maps = maps.rot90(1, dims=(-2, -1))
-        x, y = maps[0].clone(), maps[1].clone()
-        maps[0], maps[1] = -y, x
+    maps = dihedral(maps, 0, bool(rng.random() < 0.5), int(rng.integers(4)))
     maps[constants.NORMAL] = torch.nn.functional.normalize(maps[constants.NORMAL], dim=0)
     return maps
+
+
+def dihedral(image: torch.Tensor, vector_channel: int | None, mirror: bool, turns: int) -> torch.Tensor:
+    """An image of the sample plane mirrored left-right (x -> -x), then turned by ``turns`` quarter
+    turns counter-clockwise ((x, y) -> (-y, x)), with the in-plane vector whose x and y are channels
+    ``vector_channel`` and ``vector_channel + 1`` (None: no vector) turned with it (a normal, a
+    direction). A flash photo of the material so moved, under the flash so moved, is the photo so
+    moved.
+
+    Args:
+        image: (..., C, H, W), square; returned as a new tensor.
+    """
+    image = image.flip(-1) if mirror else image.clone()
+    if vector_channel is None:
+        return image.rot90(turns % 4, dims=(-2, -1))
+    x, y = vector_channel, vector_channel + 1
+    if mirror:
+        image[..., x, :, :] = -image[..., x, :, :]
+    for _ in range(turns % 4):
+        image = image.rot90(1, dims=(-2, -1))
+        image[..., [x, y], :, :] = torch.stack([-image[..., y, :, :], image[..., x, :, :]], dim=-3)
+    return image
+
+
+class NormalUnitPool:
+    """The training data of the normal unit alone (``TrainConfig.normal_pool``): the relief inputs
+    and true normals of a pool of photographed training materials, renewed a few at a time.
+
+    Before step s the pool holds materials s*R .. s*R + P - 1 of the training sources (P the pool,
+    R the refresh), material k in slot k mod P, photographed with a generator of its own: the
+    pool at a step is the same whether the run got there in one go or resumed.
+    """
+
+    def __init__(self, materials: Dataset, config: TrainConfig, step: int):
+        self.materials, self.config = materials, config
+        size = config.size
+        self.relief = torch.empty(config.normal_pool, RELIEF_CHANNELS, size, size)
+        self.normals = torch.empty(config.normal_pool, 3, size, size)
+        first = step * config.normal_pool_refresh
+        self._photograph(range(first, first + config.normal_pool))
+        self.step = step
+
+    def _photograph(self, numbers) -> None:
+        config = self.config
+        for number in numbers:
+            maps = self.materials[number][None]
+            batch = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + number), config.synthesis)
+            slot = number % config.normal_pool
+            self.relief[slot] = relief_inputs(decode_photo(batch.inputs), batch.lights, config.synthesis.fov,
+                                              config.network.convention, config.network.plane_extent)[0]
+            self.normals[slot] = maps[0, constants.NORMAL]
+
+    def advance(self) -> None:
+        """Replace the pool's oldest materials: the pool of the next step."""
+        first = self.step * self.config.normal_pool_refresh + self.config.normal_pool
+        self._photograph(range(first, first + self.config.normal_pool_refresh))
+        self.step += 1
+
+    def crops(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """A batch of random crops, each mirrored and turned at random: (relief inputs
+        (B, RELIEF_CHANNELS, C, C), true normals (B, 3, C, C))."""
+        config, crop = self.config, self.config.normal_crop
+        slots = torch.randint(0, config.normal_pool, (config.batch,), generator=generator).tolist()
+        corners = torch.randint(0, config.size - crop + 1, (config.batch, 2), generator=generator).tolist()
+        moves = torch.randint(0, 8, (config.batch,), generator=generator).tolist()
+        relief, normals = [], []
+        for slot, (top, left), move in zip(slots, corners, moves):
+            window = (slot, slice(None), slice(top, top + crop), slice(left, left + crop))
+            relief.append(dihedral(self.relief[window], RELIEF_DIRECTION_CHANNEL, move >= 4, move % 4))
+            normals.append(dihedral(self.normals[window], 0, move >= 4, move % 4))
+        return torch.stack(relief), torch.stack(normals)
+
+
+def normals_over_flat(raw_slope: torch.Tensor) -> torch.Tensor:
+    """The normals (B, 3, H, W) that the normal unit's output (B, 2, H, W), before its tanh, gives
+    a flat material: unit-normal(tanh(slope), 1), as ``DeepBasisNet`` adds it to the bases."""
+    slope = torch.tanh(raw_slope)
+    return torch.nn.functional.normalize(torch.cat([slope, torch.ones_like(slope[:, :1])], dim=1), dim=1)
 
 
 class StepBatchSampler(Sampler):
@@ -595,6 +689,8 @@ class Trainer:
 
     def train_step(self, maps: torch.Tensor) -> dict:
         config = self.config
+        if config.normal_pool:
+            return self._normal_unit_step(maps)
         maps = maps.to(self.device, non_blocking=True)
         batch = synthesize(maps, self.generator, self.synthesis, self._extra_inputs())
         use_vc = config.vc_weight > 0
@@ -634,7 +730,35 @@ class Trainer:
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
                 **losses, "grad_norm": norm.item()}
 
+    def _normal_unit_step(self, crops: tuple[torch.Tensor, torch.Tensor]) -> dict:
+        """One step of the normal unit alone (``TrainConfig.normal_pool``) on crops of the pool."""
+        relief, truth = (tensor.to(self.device) for tensor in crops)
+        unit = getattr(self.model, "module", self.model).normal_unit
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
+            raw = unit(relief)
+        loss = ((normals_over_flat(raw.float()) - truth) ** 2).mean()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        trained = list(self.parameter_names)
+        if self.config.grad_clip > 0:
+            norm = torch.nn.utils.clip_grad_norm_(trained, self.config.grad_clip)
+        else:
+            norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in trained]))
+        self.optimizer.step()
+        self.step += 1
+        self._set_learning_rate()
+        return {"loss": loss.item(), "l_sup": loss.item(), "l_vc": 0.0, "l_saturation": 0.0, "grad_norm": norm.item()}
+
     # --- the loop ----------------------------------------------------------------------------------
+
+    def pool_crops(self):
+        """Batches of the normal pool (``TrainConfig.normal_pool``) from this step on: crops, then
+        the pool moves on."""
+        pool = NormalUnitPool(TrainingMaterials(tuple(self.config.data), self.config.size, self.config.seed),
+                              self.config, self.step)
+        while True:
+            yield pool.crops(self.generator)
+            pool.advance()
 
     def loader(self) -> DataLoader:
         dataset = TrainingMaterials(tuple(self.config.data), self.config.size, self.config.seed)
@@ -656,7 +780,9 @@ class Trainer:
         # disable=None: no bar where stderr is not a terminal (a log file).
         bar = tqdm(total=config.steps, initial=self.step, desc="training", unit="step",
                    disable=None if self.progress else True)
-        iterator = iter(self.loader()) if self.step < config.steps else None
+        iterator = None
+        if self.step < config.steps:
+            iterator = self.pool_crops() if config.normal_pool else iter(self.loader())
         if config.validate_every and self.step == 0 and self.rank == 0:
             # The starting point of the learning curve; after the workers start, since forking a
             # process whose OpenMP threads have run can deadlock the child.

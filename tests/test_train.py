@@ -319,3 +319,82 @@ def test_train_only_the_normal_unit_from_a_network_without_one(tmp_path):
     assert load_model(tmp_path / "run" / "model.safetensors").config.normal_unit_width == 4
     with pytest.raises(ValueError, match="unknown network parts \\['decoder'\\]"):
         tiny_config(tmp_path, train_only=("decoder",))
+
+
+def moved_point(point: torch.Tensor, mirror: bool, turns: int) -> torch.Tensor:
+    """A point (3,) of the scene mirrored (x -> -x), then turned about z by quarter turns."""
+    angle = math.pi / 2 * turns
+    rotation = torch.tensor([[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0],
+                             [0.0, 0.0, 1.0]])
+    mirrored = point * torch.tensor([-1.0 if mirror else 1.0, 1.0, 1.0])
+    return rotation @ mirrored
+
+
+@pytest.mark.parametrize("mirror,turns", [(False, 1), (True, 0), (True, 3), (False, 2)])
+def test_a_moved_material_under_the_moved_flash_photographs_as_the_moved_photo(mirror, turns):
+    from mideepbasis.model.inputs import RELIEF_DIRECTION_CHANNEL, relief_inputs
+    from mideepbasis.render import render_flash
+    from mideepbasis.train import dihedral
+
+    maps = generate(3, config=GeneratorConfig(size=32)).to_tensor()[None]
+    light = torch.tensor([0.3, -0.5, 2.2])
+    moved_light = moved_point(light, mirror, turns)
+    photo = render_flash(maps, light.view(1, 1, 3))[:, 0]
+    moved_photo = render_flash(dihedral(maps, 0, mirror, turns), moved_light.view(1, 1, 3))[:, 0]
+    assert torch.allclose(moved_photo, dihedral(photo, None, mirror, turns), atol=1e-4)
+    # So the normal unit's inputs of a moved photo are its inputs moved, flash direction included.
+    relief = relief_inputs(photo.clamp(0, 1), light.view(1, 3))
+    moved_relief = relief_inputs(moved_photo.clamp(0, 1), moved_light.view(1, 3))
+    assert torch.allclose(moved_relief, dihedral(relief, RELIEF_DIRECTION_CHANNEL, mirror, turns), atol=1e-4)
+
+
+def pool_config(tmp_path, **overrides):
+    return tiny_config(tmp_path, network={"normal_unit_width": 4}, train_only=("normal_unit",), vc_weight=0.0,
+                       normal_pool=3, normal_crop=16, **overrides)
+
+
+def test_the_normal_pool_at_a_step_is_the_same_reached_or_rebuilt(tmp_path):
+    from mideepbasis.train import NormalUnitPool, TrainingMaterials
+
+    config = pool_config(tmp_path)
+    materials = TrainingMaterials(config.data, config.size, config.seed)
+    advanced = NormalUnitPool(materials, config, 0)
+    first = advanced.normals.clone()
+    for _ in range(4):
+        advanced.advance()
+    rebuilt = NormalUnitPool(materials, config, 4)
+    assert torch.equal(advanced.relief, rebuilt.relief) and torch.equal(advanced.normals, rebuilt.normals)
+    # Four steps of one new material each replaced every material of the pool of three.
+    assert not any(torch.equal(first[i], rebuilt.normals[j]) for i in range(3) for j in range(3))
+    relief, normals = rebuilt.crops(torch.Generator().manual_seed(0))
+    assert relief.shape == (2, 7, 16, 16) and normals.shape == (2, 3, 16, 16)
+    assert torch.allclose(normals.norm(dim=1), torch.ones(2, 16, 16), atol=1e-5)
+
+
+def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path):
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny")))
+    straight = Trainer(pool_config(tmp_path / "a", init=str(source)), progress=False)
+    before = {name: value.clone() for name, value in straight.model.state_dict().items()}
+    straight.run()
+    after = straight.model.state_dict()
+    assert {name.split(".")[0] for name in after if not torch.equal(before[name], after[name])} == {"normal_unit"}
+    interrupted = Trainer(pool_config(tmp_path / "b", init=str(source)), progress=False)
+    interrupted.run(stop_at=2)
+    resumed = Trainer(pool_config(tmp_path / "b", init=str(source)), resume=True, progress=False)
+    resumed.run()
+    b = load_model(tmp_path / "b" / "run" / "model.safetensors").state_dict()
+    for name, value in load_model(tmp_path / "a" / "run" / "model.safetensors").state_dict().items():
+        assert torch.equal(value, b[name]), name
+    # On a pool that never changes the unit fits the normals over a flat rest.
+    trainer = Trainer(pool_config(tmp_path / "c", init=str(source), normal_pool_refresh=1, steps=80, batch=4),
+                      progress=False)
+    pool = trainer.pool_crops()
+    crops = next(pool)
+    losses = [trainer.train_step(crops)["loss"] for _ in range(80)]
+    assert sum(losses[-10:]) < 0.7 * sum(losses[:10]), losses
+    with pytest.raises(ValueError, match="normal_pool trains the normal unit alone"):
+        tiny_config(tmp_path, normal_pool=3)

@@ -161,6 +161,8 @@ def extra_input_channels(photo: torch.Tensor, names: tuple[str, ...], falloff: t
 
 #: Channels of ``relief_inputs``: log photo (3), shading (1), its high-pass (1), flash direction (2).
 RELIEF_CHANNELS = 7
+#: The relief inputs' first channel of the flash direction's x and y (they turn with the image).
+RELIEF_DIRECTION_CHANNEL = 5
 
 
 def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG,
