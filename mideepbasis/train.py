@@ -158,8 +158,11 @@ class TrainConfig:
     from its relief inputs (``--train-only normal_unit``), with no pass of the rest of the network:
     random crops (``normal_crop``), mirrored and turned, of a pool of N photographed training
     materials (``NormalUnitPool``) of which ``normal_pool_refresh`` are replaced each step. Its
-    prediction is taken over a flat rest, as ``DeepBasisNet`` adds it to the bases' normals;
-    validation runs the whole network."""
+    prediction is taken over a flat rest, as ``DeepBasisNet`` adds it to the bases' normals (the
+    shipped rest predicts nearly flat normals), and its loss is the mean squared error of the unit
+    normals: the losses and weights of the whole network (``normal_weight``, ``vc_weight``,
+    ``render_weight``, ``saturation_weight``) and ``workers`` do not apply. Validation runs the
+    whole network. One process only (not under torchrun)."""
 
     normal_pool_refresh: int = field(default=2, metadata={"parse": positive_int})
     """Materials of the normal pool replaced by new ones each step."""
@@ -185,6 +188,8 @@ class TrainConfig:
         unknown = sorted(set(self.train_only) - set(TRAINABLE_PARTS))
         if unknown:
             raise ValueError(f"unknown network parts {unknown} to train; expected some of {list(TRAINABLE_PARTS)}")
+        if self.normal_pool < 0:
+            raise ValueError(f"normal_pool {self.normal_pool} must be 0 (off) or a number of materials")
         if self.normal_pool:
             if self.train_only != ("normal_unit",) or not self.network.normal_unit_width:
                 raise ValueError("normal_pool trains the normal unit alone: it needs train_only = normal_unit "
@@ -558,6 +563,8 @@ class Trainer:
         self.out = Path(config.out)
         self.progress = progress and self.rank == 0
         torch.manual_seed(config.seed)
+        if config.normal_pool and self.world_size > 1:
+            raise InputError("train --normal-pool runs in one process: start it without torchrun")
         network_config = config.network
         if config.size % network_config.stride:
             raise InputError(f"training size {config.size} is not a multiple of the {config.preset} network's "

@@ -349,12 +349,14 @@ def test_a_moved_material_under_the_moved_flash_photographs_as_the_moved_photo(m
 
 
 def pool_config(tmp_path, **overrides):
-    return tiny_config(tmp_path, network={"normal_unit_width": 4}, train_only=("normal_unit",), vc_weight=0.0,
-                       normal_pool=3, normal_crop=16, **overrides)
+    values = dict(network={"normal_unit_width": 4}, train_only=("normal_unit",), vc_weight=0.0, normal_pool=3,
+                  normal_crop=16)
+    return tiny_config(tmp_path, **{**values, **overrides})
 
 
 def test_the_normal_pool_at_a_step_is_the_same_reached_or_rebuilt(tmp_path):
-    from mideepbasis.train import NormalUnitPool, TrainingMaterials
+    from mideepbasis.model.inputs import RELIEF_DIRECTION_CHANNEL
+    from mideepbasis.train import NormalUnitPool, TrainingMaterials, dihedral
 
     config = pool_config(tmp_path)
     materials = TrainingMaterials(config.data, config.size, config.seed)
@@ -364,11 +366,20 @@ def test_the_normal_pool_at_a_step_is_the_same_reached_or_rebuilt(tmp_path):
         advanced.advance()
     rebuilt = NormalUnitPool(materials, config, 4)
     assert torch.equal(advanced.relief, rebuilt.relief) and torch.equal(advanced.normals, rebuilt.normals)
-    # Four steps of one new material each replaced every material of the pool of three.
+    # Four steps of two new materials each replaced every material of the pool of three.
     assert not any(torch.equal(first[i], rebuilt.normals[j]) for i in range(3) for j in range(3))
     relief, normals = rebuilt.crops(torch.Generator().manual_seed(0))
     assert relief.shape == (2, 7, 16, 16) and normals.shape == (2, 3, 16, 16)
-    assert torch.allclose(normals.norm(dim=1), torch.ones(2, 16, 16), atol=1e-5)
+    # Each crop's relief inputs and normals come from the same material, window and move.
+    for crop_relief, crop_normals in zip(relief, normals):
+        matches = [(slot, top, left, move) for slot in range(3) for move in range(8)
+                   for top in range(17) for left in range(17)
+                   if torch.equal(dihedral(rebuilt.relief[slot, :, top:top + 16, left:left + 16],
+                                           RELIEF_DIRECTION_CHANNEL, move >= 4, move % 4), crop_relief)]
+        assert matches
+        slot, top, left, move = matches[0]
+        assert torch.equal(dihedral(rebuilt.normals[slot, :, top:top + 16, left:left + 16], 0, move >= 4, move % 4),
+                           crop_normals)
 
 
 def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path):
@@ -398,3 +409,7 @@ def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path
     assert sum(losses[-10:]) < 0.7 * sum(losses[:10]), losses
     with pytest.raises(ValueError, match="normal_pool trains the normal unit alone"):
         tiny_config(tmp_path, normal_pool=3)
+    with pytest.raises(ValueError, match="normal_crop 24 must be a multiple of 16"):
+        pool_config(tmp_path, normal_crop=24)
+    with pytest.raises(ValueError, match="normal_pool -1 must be 0"):
+        tiny_config(tmp_path, normal_pool=-1)
