@@ -1,0 +1,101 @@
+"""Where the normal error lives: the shared test set's relief by scale, and a model's normals beside it.
+
+    .venv/bin/python benchmarks/normal_bands.py [--model CKPT] [-o benchmarks/results/normal_bands.json]
+
+On the shared test set (the photos of ``evaluate``'s default protocol: seeded hand-held flashes,
+light known, the network at its training resolution; only measured, never trained on):
+
+- the oracle floors: the normal RMSE (stored encoding, as ``evaluate``) of the true normal map
+  area-averaged to 32, 64 and 128 px and upsampled back (what a perfect predictor at that
+  resolution would score), of the true mean normal of each material, and of the flat normal;
+- the normal's x and y split into three bands by scale (coarse: features of more than 1/16 of
+  the image; middle: 1/64 - 1/16; fine: the rest, at 256 px), and for each band the true
+  energy (RMS), the model's energy, its error (RMS) and the correlation of prediction and truth.
+
+Writes benchmarks/results/normal_bands.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import mideepbasis  # noqa: F401
+import torch
+import torch.nn.functional as F
+from common import RESULTS, SHARED_TEST, write_report
+
+from mideepbasis import constants
+from mideepbasis.capture import CaptureConfig, Capturer, Photo
+from mideepbasis.evaluation.protocol import evaluation_offsets, flash_photos, load_evaluation_materials
+from mideepbasis.model.checkpoint import load_model
+
+#: The bands' limits: area-averaged sizes [pixels] of a 256 px map.
+COARSE, MIDDLE = 16, 64
+
+
+def resampled(image: torch.Tensor, size: int) -> torch.Tensor:
+    """``image`` (B, C, H, W) area-averaged to size x size and bilinearly upsampled back."""
+    small = F.interpolate(image, size=(size, size), mode="area")
+    return F.interpolate(small, size=image.shape[-2:], mode="bilinear", align_corners=False)
+
+
+def stored_rmse(normals: torch.Tensor, truth: torch.Tensor) -> float:
+    """Mean per-material RMSE of unit normals (B, 3, H, W) in the stored encoding (n + 1) / 2."""
+    return float((((normals - truth) / 2) ** 2).mean(dim=(1, 2, 3)).sqrt().mean())
+
+
+def bands(xy: torch.Tensor) -> dict[str, torch.Tensor]:
+    coarse = resampled(xy, COARSE)
+    middle = resampled(xy, MIDDLE)
+    return {"coarse": coarse, "middle": middle - coarse, "fine": xy - middle}
+
+
+def rms(x: torch.Tensor) -> float:
+    return float((x**2).mean(dim=(1, 2, 3)).sqrt().mean())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "normal_bands.json")
+    args = parser.parse_args()
+    if not SHARED_TEST.is_dir():
+        raise SystemExit(f"{SHARED_TEST} is absent")
+
+    materials = load_evaluation_materials(SHARED_TEST, "deschaintre5")
+    truth = materials.stored[:, constants.NORMAL]  # as evaluate compares: the normals as stored
+    flat = torch.zeros_like(truth)
+    flat[:, 2] = 1.0
+    mean_normal = F.normalize(truth.mean(dim=(2, 3), keepdim=True).expand_as(truth), dim=1)
+    floors = {f"oracle_{size}px": stored_rmse(F.normalize(resampled(truth, size), dim=1), truth) for size in (32, 64, 128)}
+    floors.update({"oracle_mean_normal": stored_rmse(mean_normal, truth), "flat": stored_rmse(flat, truth)})
+
+    model = load_model(args.model)
+    fov = constants.DEFAULT_FOV_DEG
+    capturer = Capturer(model, CaptureConfig(fov=fov))
+    offsets = evaluation_offsets(len(truth), 0, fov)
+    predicted = []
+    with torch.no_grad():
+        for index in range(len(truth)):
+            photos, _ = flash_photos(materials.maps[index:index + 1], offsets[index:index + 1], fov,
+                                     model.config.convention, model.config.plane_extent)
+            predicted.append(capturer.predict(Photo(photos[0], fov, "argument"), offsets[index]).maps[:, constants.NORMAL])
+    predicted = torch.cat(predicted)
+    report = {"model": args.model or "shipped", "floors": floors, "model_rmse": stored_rmse(predicted, truth), "bands": {}}
+    for name, true_band in bands(truth[:, :2]).items():
+        predicted_band = bands(predicted[:, :2])[name]
+        correlation = float((predicted_band * true_band).sum() / (predicted_band.norm() * true_band.norm()))
+        report["bands"][name] = {"truth_rms": rms(true_band), "model_rms": rms(predicted_band),
+                                 "error_rms": rms(predicted_band - true_band), "correlation": correlation}
+    for name, value in floors.items():
+        print(f"{name}: {value:.4f}")
+    print(f"model: {report['model_rmse']:.4f}")
+    for name, row in report["bands"].items():
+        print(f"{name:>6}: truth {row['truth_rms']:.4f}, model {row['model_rms']:.4f}, error {row['error_rms']:.4f}, "
+              f"correlation {row['correlation']:.3f}")
+    write_report(args.output, "normal_bands", report)
+
+
+if __name__ == "__main__":
+    main()
