@@ -1,6 +1,7 @@
 """Where the normal error lives: the shared test set's relief by scale, and a model's normals beside it.
 
     .venv/bin/python benchmarks/normal_bands.py [--model CKPT] [-o benchmarks/results/normal_bands.json]
+    .venv/bin/python benchmarks/normal_bands.py --procedural 48 [--coarse-relief-tilt-deg 1 15]
 
 On the shared test set (the photos of ``evaluate``'s default protocol: seeded hand-held flashes,
 light known, the network at its training resolution; only measured, never trained on):
@@ -12,7 +13,10 @@ light known, the network at its training resolution; only measured, never traine
   the image; middle: 1/64 - 1/16; fine: the rest, at 256 px), and for each band the true
   energy (RMS), the model's energy, its error (RMS) and the correlation of prediction and truth.
 
-Writes benchmarks/results/normal_bands.json.
+``--procedural N``: the same bands of the true normals of N training materials (seeds 5000 on,
+128 px, shown at 256 px), with the generator's defaults or its ``coarse_relief_tilt_deg``, beside
+the shared set's; no model. Writes benchmarks/results/normal_bands.json (or
+normal_bands_procedural.json).
 """
 
 from __future__ import annotations
@@ -55,13 +59,35 @@ def rms(x: torch.Tensor) -> float:
     return float((x**2).mean(dim=(1, 2, 3)).sqrt().mean())
 
 
+def procedural_bands(args) -> None:
+    """The relief of training materials by scale, beside the shared set's."""
+    from mideepbasis.data.procedural import GeneratorConfig, generate
+
+    tilt = tuple(args.coarse_relief_tilt_deg) if args.coarse_relief_tilt_deg else None
+    config = GeneratorConfig(size=128, coarse_relief_tilt_deg=tilt)
+    maps = torch.stack([generate(5000 + i, config=config).to_tensor() for i in range(args.procedural)])
+    sets = {"procedural": F.interpolate(maps[:, :2], size=(256, 256), mode="bilinear", align_corners=False),
+            "shared": load_evaluation_materials(SHARED_TEST, "deschaintre5").stored[:, :2]}
+    report = {"coarse_relief_tilt_deg": tilt, "materials": args.procedural, "bands": {}}
+    for name, xy in sets.items():
+        report["bands"][name] = {band: rms(values) for band, values in bands(xy).items()}
+        print(f"{name:>10}: " + ", ".join(f"{band} {value:.4f}" for band, value in report["bands"][name].items()))
+    write_report(args.output.with_name(args.output.stem + "_procedural.json"), "normal_bands", report)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "normal_bands.json")
+    parser.add_argument("--procedural", type=int, default=0, help="only the bands of this many training materials")
+    parser.add_argument("--coarse-relief-tilt-deg", type=float, nargs=2, default=None,
+                        help="the generator's coarse_relief_tilt_deg for --procedural")
     args = parser.parse_args()
     if not SHARED_TEST.is_dir():
         raise SystemExit(f"{SHARED_TEST} is absent")
+    if args.procedural:
+        procedural_bands(args)
+        return
 
     materials = load_evaluation_materials(SHARED_TEST, "deschaintre5")
     truth = materials.stored[:, constants.NORMAL]  # as evaluate compares: the normals as stored

@@ -347,7 +347,7 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--preset", choices=sorted(PRESETS), default=argparse.SUPPRESS,
                         help="network preset the --network-* settings start from (default: compact)")
     # Every other TrainConfig field is an option (--steps, --network-num-bases, --synthesis-read-noise, ...).
-    add_config_arguments(parser, TrainConfig, skip={"out", "preset", "synthesis.convention"})
+    add_config_arguments(parser, TrainConfig, skip={"out", "preset", "synthesis.convention", "procedural.size"})
     parser.set_defaults(run=_run_train)
 
 

@@ -35,6 +35,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from . import constants
 from .configs import differences, positive_int
+from .data.procedural import GeneratorConfig
 from .data.synth import SynthesisConfig, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
@@ -114,6 +115,10 @@ class TrainConfig:
     """How the training photos are made (None: the defaults; a dict: fields replaced). Its shading
     convention is always the network's. Stored resolved."""
 
+    procedural: GeneratorConfig | dict | None = None
+    """The procedural materials (None: the defaults; a dict: fields replaced, e.g.
+    ``coarse_relief_tilt_deg``). Its size is always the run's. Stored resolved."""
+
     init: str | None = None
     """Start from the weights of this checkpoint (same network configuration), e.g. to fine-tune
     at a higher resolution; the optimiser and the schedule start afresh."""
@@ -181,6 +186,11 @@ class TrainConfig:
             synthesis = SynthesisConfig(**{key: tuple(value) if isinstance(value, list) else value
                                            for key, value in (synthesis or {}).items()})
         self.synthesis = dataclasses.replace(synthesis, convention=self.network.convention)
+        procedural = self.procedural
+        if procedural is None or isinstance(procedural, dict):
+            procedural = GeneratorConfig(**{key: tuple(value) if isinstance(value, list) else value
+                                            for key, value in (procedural or {}).items()})
+        self.procedural = dataclasses.replace(procedural, size=self.size)
         self.data = tuple(self.data)
         if not self.data:
             raise ValueError("no material sources (data): give procedural and/or folders")
@@ -235,15 +245,14 @@ RESUMABLE_CHANGES = frozenset({"out", "workers", "checkpoint_minutes", "log_ever
 
 
 class TrainingMaterials(Dataset):
-    """Item i: a (10, size, size) material from one of the sources, always the same for the same i.
+    """Item i: a (10, size, size) material from one of the sources, always the same for the same i
+    (procedural ones drawn with the ``procedural`` generator settings; default: the defaults).
 
     Sources are drawn in turn by a hash of i; folder materials are cropped or resized to the
     training size and randomly flipped and turned by 90 degrees (normals turned with them).
     """
 
-    def __init__(self, sources: tuple[str, ...], size: int, seed: int):
-        from .data.procedural import GeneratorConfig
-
+    def __init__(self, sources: tuple[str, ...], size: int, seed: int, procedural: GeneratorConfig | None = None):
         self.size, self.seed = size, seed
         self.readers = []
         self.procedural = None
@@ -251,7 +260,8 @@ class TrainingMaterials(Dataset):
             if source == "procedural":
                 from .data.datasets import ProceduralMaterials
 
-                self.procedural = ProceduralMaterials(seed, GeneratorConfig(size=size))
+                config = dataclasses.replace(procedural, size=size) if procedural else GeneratorConfig(size=size)
+                self.procedural = ProceduralMaterials(seed, config)
                 self.readers.append("procedural")
             else:
                 self.readers.append(self._folder_reader(source))
@@ -761,14 +771,14 @@ class Trainer:
     def pool_crops(self):
         """Batches of the normal pool (``TrainConfig.normal_pool``) from this step on: crops, then
         the pool moves on."""
-        pool = NormalUnitPool(TrainingMaterials(tuple(self.config.data), self.config.size, self.config.seed),
-                              self.config, self.step)
+        config = self.config
+        pool = NormalUnitPool(TrainingMaterials(config.data, config.size, config.seed, config.procedural), config, self.step)
         while True:
             yield pool.crops(self.generator)
             pool.advance()
 
     def loader(self) -> DataLoader:
-        dataset = TrainingMaterials(tuple(self.config.data), self.config.size, self.config.seed)
+        dataset = TrainingMaterials(self.config.data, self.config.size, self.config.seed, self.config.procedural)
         sampler = StepBatchSampler(self.config.batch, self.step, self.rank, self.world_size)
         workers = self.config.workers
         return DataLoader(dataset, batch_sampler=sampler, num_workers=workers, worker_init_fn=_single_threaded_worker,

@@ -413,3 +413,20 @@ def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path
         pool_config(tmp_path, normal_crop=24)
     with pytest.raises(ValueError, match="normal_pool -1 must be 0"):
         tiny_config(tmp_path, normal_pool=-1)
+
+
+def test_training_materials_follow_the_runs_procedural_settings(tmp_path):
+    from mideepbasis.train import TrainingMaterials
+
+    settings = {"coarse_relief_tilt_deg": [20.0, 20.0], "coarse_relief_probability": 1.0}
+    config = tiny_config(tmp_path, procedural=settings)
+    assert config.procedural == GeneratorConfig(size=32, coarse_relief_tilt_deg=(20.0, 20.0), coarse_relief_probability=1.0)
+    materials = TrainingMaterials(config.data, config.size, config.seed, config.procedural)
+    plain = TrainingMaterials(config.data, config.size, config.seed)
+    assert not torch.equal(materials[3], plain[3])
+    assert torch.equal(materials[3][3:], plain[3][3:])  # only the relief differs
+    # Stored resolved, and a run started before the setting existed resumes with the defaults.
+    stored = dataclasses.asdict(config)
+    assert TrainConfig.from_dict(stored) == config
+    del stored["procedural"]
+    assert TrainConfig.from_dict(stored).procedural == GeneratorConfig(size=32)

@@ -133,3 +133,29 @@ def test_relief_of_every_family_is_scaled_to_the_drawn_tilt():
                                                                         max_relief_factor=1e4)).to_tensor()
             tilts.append(float(torch.rad2deg(torch.acos(maps[2].clamp(-1, 1))).mean()))
         assert tilts == pytest.approx([12.0] * 3, abs=1.5), (family, tilts)
+
+
+def coarse_share(normal: torch.Tensor, size: int = 8) -> float:
+    """The share of the normal's x and y (2, H, W) in features larger than 1/size of the sample."""
+    xy = normal[None, :2]
+    coarse = torch.nn.functional.interpolate(torch.nn.functional.interpolate(xy, size=(size, size), mode="area"),
+                                             size=xy.shape[-2:], mode="bilinear", align_corners=False)
+    return float(coarse.square().mean() / xy.square().mean())
+
+
+def test_coarse_relief_adds_broad_bumps_and_keeps_the_rest_of_the_material():
+    plain_config = GeneratorConfig(size=64)
+    coarse_config = GeneratorConfig(size=64, coarse_relief_tilt_deg=(20.0, 20.0), coarse_relief_probability=1.0)
+    for seed in range(4):
+        plain, coarse = generate(seed, config=plain_config), generate(seed, config=coarse_config)
+        assert torch.equal(plain.diffuse, coarse.diffuse) and torch.equal(plain.roughness, coarse.roughness)
+        assert torch.equal(plain.specular, coarse.specular)
+        assert coarse.provenance["coarse_relief_tilt_deg"] == pytest.approx(20.0)
+        assert "coarse_relief_tilt_deg" not in plain.provenance
+        # The broad undulation carries much of the normal's lean, and the material leans more.
+        share, plain_share = coarse_share(coarse.normal), coarse_share(plain.normal)
+        assert share > max(2 * plain_share, plain_share + 0.1), (seed, share, plain_share)
+        tilt = [float(torch.rad2deg(torch.acos(m.normal[2].clamp(-1, 1))).mean()) for m in (plain, coarse)]
+        assert tilt[1] > tilt[0], seed
+    never = GeneratorConfig(size=64, coarse_relief_tilt_deg=(20.0, 20.0), coarse_relief_probability=0.0)
+    assert torch.equal(generate(1, config=never).normal, generate(1, config=plain_config).normal)
