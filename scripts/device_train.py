@@ -38,6 +38,12 @@ VARIANTS = {
     "normal_unit": ["--render-weight", "0", "--vc-weight", "0", "--network-normal-unit-width", "16",
                     "--train-only", "normal_unit"],
     "normal_unit_all": ["--render-weight", "0", "--network-normal-unit-width", "16"],
+    # The same on materials with a broad undulation under their relief, which the shared test set
+    # has and the generator's defaults lack (MODEL.md, 2026-11-30 third session).
+    "normal_unit_coarse": ["--render-weight", "0", "--vc-weight", "0", "--network-normal-unit-width", "16",
+                           "--train-only", "normal_unit", "--procedural-coarse-relief-tilt-deg", "1.5,30"],
+    "coarse_all": ["--render-weight", "0", "--network-normal-unit-width", "16",
+                   "--procedural-coarse-relief-tilt-deg", "1.5,30"],
 }
 
 COMMON = ["--preset", "compact", "--data", "procedural", "--render-backend", "torch", "--bf16",
@@ -88,7 +94,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=7.5, help="wall time of the real runs [minutes]")
     parser.add_argument("--calibration-minutes", type=float, default=0.75)
-    parser.add_argument("--variants", nargs="+", default=["normal_unit", "normal_unit_all", "local24"],
+    parser.add_argument("--variants", nargs="+", default=["normal_unit_coarse", "coarse_all", "normal_unit_all"],
                         choices=list(VARIANTS))
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--lr", type=float, default=5e-4)
