@@ -178,18 +178,15 @@ class TrainConfig:
     def __post_init__(self):
         # Resolve the network and the synthesis now, so that what is stored is what ran.
         if self.network is None or isinstance(self.network, dict):
-            overrides = {key: tuple(value) if isinstance(value, list) else value
-                         for key, value in (self.network or {}).items() if key != "input_channels"}
+            overrides = {key: value for key, value in _fields(self.network).items() if key != "input_channels"}
             self.network = preset(self.preset, **overrides)
         synthesis = self.synthesis
         if synthesis is None or isinstance(synthesis, dict):
-            synthesis = SynthesisConfig(**{key: tuple(value) if isinstance(value, list) else value
-                                           for key, value in (synthesis or {}).items()})
+            synthesis = SynthesisConfig(**_fields(synthesis))
         self.synthesis = dataclasses.replace(synthesis, convention=self.network.convention)
         procedural = self.procedural
         if procedural is None or isinstance(procedural, dict):
-            procedural = GeneratorConfig(**{key: tuple(value) if isinstance(value, list) else value
-                                            for key, value in (procedural or {}).items()})
+            procedural = GeneratorConfig(**_fields(procedural))
         self.procedural = dataclasses.replace(procedural, size=self.size)
         self.data = tuple(self.data)
         if not self.data:
@@ -226,6 +223,11 @@ class TrainConfig:
         if unknown:
             raise InputError(f"{source}: unknown training settings {unknown}")
         return cls(**{key: tuple(value) if key == "data" else value for key, value in values.items()})
+
+
+def _fields(values: dict | None) -> dict:
+    """A nested config's fields as given (None: none), lists (as JSON stores tuples) made tuples."""
+    return {key: tuple(value) if isinstance(value, list) else value for key, value in (values or {}).items()}
 
 
 #: NetworkConfig fields of the local unit's size: ``--init`` from a network with another local unit
@@ -734,18 +736,24 @@ class Trainer:
                                        self.synthesis.convention)
             loss = loss + config.render_weight * rendering
             losses["l_render"] = rendering.item()
+        norm = self._optimise(loss)
+        return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
+                **losses, "grad_norm": norm.item()}
+
+    def _optimise(self, loss: torch.Tensor) -> torch.Tensor:
+        """Backward, the gradient clipped to ``grad_clip``, one Adam step, the next learning rate;
+        returns the gradient's global norm before clipping."""
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if config.grad_clip > 0:
-            norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), config.grad_clip)
+        if self.config.grad_clip > 0:
+            norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
         else:
             norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in self.model.parameters()
                                                          if p.grad is not None]))
         self.optimizer.step()
         self.step += 1
         self._set_learning_rate()
-        return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
-                **losses, "grad_norm": norm.item()}
+        return norm
 
     def _normal_unit_step(self, crops: tuple[torch.Tensor, torch.Tensor]) -> dict:
         """One step of the normal unit alone (``TrainConfig.normal_pool``) on crops of the pool."""
@@ -754,16 +762,7 @@ class Trainer:
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
             raw = unit(relief)
         loss = ((normals_over_flat(raw.float()) - truth) ** 2).mean()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        trained = list(self.parameter_names)
-        if self.config.grad_clip > 0:
-            norm = torch.nn.utils.clip_grad_norm_(trained, self.config.grad_clip)
-        else:
-            norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in trained]))
-        self.optimizer.step()
-        self.step += 1
-        self._set_learning_rate()
+        norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": loss.item(), "l_vc": 0.0, "l_saturation": 0.0, "grad_norm": norm.item()}
 
     # --- the loop ----------------------------------------------------------------------------------
@@ -771,14 +770,17 @@ class Trainer:
     def pool_crops(self):
         """Batches of the normal pool (``TrainConfig.normal_pool``) from this step on: crops, then
         the pool moves on."""
-        config = self.config
-        pool = NormalUnitPool(TrainingMaterials(config.data, config.size, config.seed, config.procedural), config, self.step)
+        pool = NormalUnitPool(self.materials(), self.config, self.step)
         while True:
             yield pool.crops(self.generator)
             pool.advance()
 
+    def materials(self) -> TrainingMaterials:
+        """The run's training materials by number."""
+        return TrainingMaterials(self.config.data, self.config.size, self.config.seed, self.config.procedural)
+
     def loader(self) -> DataLoader:
-        dataset = TrainingMaterials(self.config.data, self.config.size, self.config.seed, self.config.procedural)
+        dataset = self.materials()
         sampler = StepBatchSampler(self.config.batch, self.step, self.rank, self.world_size)
         workers = self.config.workers
         return DataLoader(dataset, batch_sampler=sampler, num_workers=workers, worker_init_fn=_single_threaded_worker,
