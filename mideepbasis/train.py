@@ -148,7 +148,14 @@ class TrainConfig:
     """Linear learning-rate warm-up over this many steps before the cosine decay."""
 
     validation_count: int = field(default=32, metadata={"parse": positive_int})
-    """Held-out procedural materials (fixed seeds, never drawn in training) of each validation."""
+    """Held-out procedural materials (fixed seeds, never drawn in training) of each validation set."""
+
+    select_by: str = field(default="held_out", metadata={"choices": ("held_out", "run_generator")})
+    """Which validation set keeps ``best.safetensors``. Each validation predicts two: ``held_out``,
+    materials of the generator as it was when the learning curve began (its figures compare across
+    all runs); ``run_generator``, as many materials drawn by this run's own generator
+    (``procedural``), which sees what a change of the training materials teaches (e.g. the broad
+    undulation of ``coarse_relief_tilt_deg``, which the first set lacks)."""
 
     train_only: tuple[str, ...] = ()
     """Train only these parts of the network (``TRAINABLE_PARTS``: e.g. ``normal_unit``); the
@@ -604,7 +611,7 @@ class Trainer:
         self.step = 0
         self.elapsed = 0.0
         self.best_score = math.inf
-        self._validation_batch = None
+        self._validation_batches = {}
         if config.init and not resume:
             self._initialise_from(config.init)
         if resume:
@@ -864,26 +871,24 @@ class Trainer:
 
         plot_training_log(self.out / "train.jsonl", self.out / "loss.png")
 
-    def validation_batch(self):
-        """The held-out validation materials and their photos (fixed seeds; made once)."""
-        if self._validation_batch is None:
+    def validation_batch(self, of: str = "held_out"):
+        """The validation materials and their photos (fixed seeds; made once): ``held_out`` or
+        ``run_generator`` (``TrainConfig.select_by``)."""
+        if of not in self._validation_batches:
             from .data.procedural import GeneratorConfig, generate
 
-            # The generator as it was when the learning curve began (relief by a factor, not scaled
-            # to a drawn tilt), so that validations of every session compare.
-            config = GeneratorConfig(size=self.config.size, relief_tilt_deg=None)
+            # held_out: the generator as it was when the learning curve began (relief by a factor,
+            # not scaled to a drawn tilt), so that validations of every session compare.
+            config = (GeneratorConfig(size=self.config.size, relief_tilt_deg=None) if of == "held_out"
+                      else self.config.procedural)
             maps = torch.stack([generate(VALIDATION_SEED + i, config=config).to_tensor()
                                 for i in range(self.config.validation_count)])
-            self._validation_batch = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis,
-                                                self._extra_inputs())
-        return self._validation_batch
+            self._validation_batches[of] = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis,
+                                                      self._extra_inputs())
+        return self._validation_batches[of]
 
-    def validate(self, chunk: int = 16) -> dict:
-        """Predict the held-out procedural materials; log map RMSE (and the flat-normal RMSE beside
-        the normal's), keep ``best.safetensors`` by their mean, and write a sheet of four."""
-        from .reporting import validation_sheet
-
-        batch = self.validation_batch()
+    def _predict_validation(self, batch, chunk: int = 16) -> torch.Tensor:
+        """The whole network's maps (B, 10, H, W) of a validation batch, in chunks."""
         model = getattr(self.model, "module", self.model)
         model.eval()
         predicted = []
@@ -893,16 +898,32 @@ class Trainer:
                                batch.lights[start:start + chunk].to(self.device), fov=self.synthesis.fov)
                 predicted.append(output.maps.float().cpu())
         model.train()
-        predicted, maps = torch.cat(predicted), batch.maps
+        return torch.cat(predicted)
+
+    def validate(self) -> dict:
+        """Predict both validation sets; log their map RMSE (and the flat-normal RMSE beside the
+        normal's), keep ``best.safetensors`` by the mean of the ``select_by`` set's, and write a
+        sheet of four of the held-out set."""
+        from .reporting import validation_sheet
+
+        batch = self.validation_batch("held_out")
+        model = getattr(self.model, "module", self.model)
+        predicted, maps = self._predict_validation(batch), batch.maps
         rmse = unit_normal_map_rmse(predicted, maps)
-        flat = maps.clone()
-        flat[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
         score = sum(rmse.values()) / len(rmse)
+        own_batch = self.validation_batch("run_generator")
+        own_rmse = unit_normal_map_rmse(self._predict_validation(own_batch), own_batch.maps)
+        own_score = sum(own_rmse.values()) / len(own_rmse)
         record = {"step": self.step, "validation_rmse": rmse, "validation_score": score,
                   "validation_rerender_rmse": self._validation_rerender_rmse(predicted, maps),
-                  "validation_flat_normal_rmse": unit_normal_map_rmse(flat, maps)["normal"],
-                  "validation_tilt_deg": {"predicted": mean_tilt_deg(predicted), "truth": mean_tilt_deg(maps)}}
+                  "validation_flat_normal_rmse": unit_normal_map_rmse(flat_normals(maps), maps)["normal"],
+                  "validation_tilt_deg": {"predicted": mean_tilt_deg(predicted), "truth": mean_tilt_deg(maps)},
+                  "run_generator_validation": {
+                      "rmse": own_rmse, "score": own_score,
+                      "flat_normal_rmse": unit_normal_map_rmse(flat_normals(own_batch.maps), own_batch.maps)["normal"]}}
         self.log(record)
+        if self.config.select_by == "run_generator":
+            score = own_score
         if score < self.best_score:
             self.best_score = score
             save_checkpoint(self.out / "best.safetensors", model, metadata={"training": {
@@ -953,6 +974,13 @@ def unit_normal_map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
     normal's figure is twice ``evaluation.map_rmse``'s, which is in the stored encoding)."""
     rmse = ((predicted - truth) ** 2).mean(dim=(0, 2, 3)).sqrt()
     return {name: rmse[channels].mean().item() for name, channels in constants.MAP_SLICES.items()}
+
+
+def flat_normals(maps: torch.Tensor) -> torch.Tensor:
+    """A copy of maps (B, 10, H, W) with flat normals (+z): the baseline of the normal's RMSE."""
+    flat = maps.clone()
+    flat[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0], dtype=maps.dtype).view(1, 3, 1, 1)
+    return flat
 
 
 def mean_tilt_deg(maps: torch.Tensor) -> float:

@@ -263,6 +263,36 @@ def test_validation_keeps_the_best_weights_and_a_time_limit_stops_with_a_checkpo
     assert not (tmp_path / "run" / "model.safetensors").exists()  # stopped, not finished
 
 
+def test_validation_of_the_runs_own_generator_can_select_the_best_weights(tmp_path):
+    from mideepbasis.train import VALIDATION_SEED, flat_normals, unit_normal_map_rmse
+
+    procedural = {"coarse_relief_tilt_deg": (10.0, 20.0), "coarse_relief_probability": 1.0}
+    config = tiny_config(tmp_path, validation_count=2, select_by="run_generator", procedural=procedural)
+    trainer = Trainer(config, progress=False)
+    trainer.out.mkdir(parents=True)  # run() makes it
+    # The second set is drawn by the run's generator: the undulation the held-out set lacks.
+    own = trainer.validation_batch("run_generator").maps
+    expected = generate(VALIDATION_SEED + 1, config=config.procedural).to_tensor()
+    torch.testing.assert_close(own[1], expected)
+    held_out = trainer.validation_batch("held_out").maps
+    assert not torch.equal(own[:, :3], held_out[:, :3])
+    records = []
+    for step in range(3):  # three different networks; the best by the second set's score is kept
+        trainer.step = step
+        with torch.no_grad():
+            for parameter in trainer.model.parameters():
+                parameter.add_(0.05 * torch.randn_like(parameter))
+        records.append(trainer.validate())
+    for record in records:
+        part = record["run_generator_validation"]
+        assert part["score"] == pytest.approx(sum(part["rmse"].values()) / 4)
+        assert part["flat_normal_rmse"] == pytest.approx(unit_normal_map_rmse(flat_normals(own), own)["normal"])
+    best = min(records, key=lambda r: r["run_generator_validation"]["score"])
+    document, _ = read_checkpoint(tmp_path / "run" / "best.safetensors")
+    assert document["training"]["validation"]["step"] == best["step"]
+    assert trainer.best_score == best["run_generator_validation"]["score"]
+
+
 def test_init_from_a_network_with_another_local_unit_loads_the_rest(tmp_path):
     from mideepbasis.errors import InputError
     from mideepbasis.model.checkpoint import save_checkpoint
