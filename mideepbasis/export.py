@@ -199,7 +199,8 @@ def check_output(out: Path, overwrite: bool) -> None:
 
 
 def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: bool = False,
-                 environment: str = "studio", environment_spp: int = constants.DEFAULT_SPP,
+                 environment: str = "studio", environment_spp: int = constants.CAPTURE_PREVIEW_SPP,
+                 environment_sampler: str = constants.CAPTURE_PREVIEW_SAMPLER,
                  progress: bool = False, truth=None, preview_tiles: float = 2.0,
                  shape_spp: int = constants.SHAPE_PREVIEW_SPP, shape_previews: bool = True) -> Path:
     """Write everything a capture gives (see the module docstring) into ``out``, atomically.
@@ -244,7 +245,8 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
             write_image(staging / "photo.png", _hwc(result.photo).clip(0, 1), encode_srgb=True)
             write_image(staging / "rerender.png", _hwc(rerender).clip(0, 1), encode_srgb=True)
             write_image(staging / "error.png", (_hwc(error) * 4).clip(0, 1), encode_srgb=True)
-            scene = preview_scene(maps[0], environment=environment, spp=environment_spp, convention=material.convention)
+            scene = preview_scene(maps[0], environment=environment, spp=environment_spp, convention=material.convention,
+                                  sampler=environment_sampler)
             environment_image = render(scene, progress=progress)
             write_image(staging / "environment.png", environment_image.clip(0, 1), encode_srgb=True)
             for shape in ("sphere", "cloth") if shape_previews else ():
@@ -253,7 +255,7 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
                 write_image(staging / f"preview_{shape}.png", preview.clip(0, 1), encode_srgb=True)
             if truth is not None:
                 truth_scene = preview_scene(truth.to_tensor(), environment=environment, spp=environment_spp,
-                                            convention=material.convention)
+                                            convention=material.convention, sampler=environment_sampler)
                 truth_image = render(truth_scene, progress=progress)  # the capture's seed: correlated noise
                 write_image(staging / "environment_truth.png", truth_image.clip(0, 1), encode_srgb=True)
                 difference = np.abs(linear_to_srgb(truth_image.clip(0, 1)) - linear_to_srgb(environment_image.clip(0, 1)))

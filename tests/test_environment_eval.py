@@ -106,3 +106,19 @@ def test_evaluation_under_environments_writes_its_rows_and_counts_a_corrupt_mate
         assert (tmp_path / "out" / image).is_file(), image
     header = (tmp_path / "out" / "per_material.csv").read_text().splitlines()[0]
     assert "env_studio_rmse" in header and "env_uniform_ssim" in header
+
+
+def test_the_capture_previews_stratified_samples_are_no_noisier_than_64_independent_ones():
+    from mideepbasis import constants
+    from mideepbasis.render.scenes import preview_scene, render
+
+    maps = material(size=64, seed=11)
+
+    def display(spp, sampler, seed=0):
+        scene = preview_scene(maps, spp=spp, resolution=64, sampler=sampler)
+        return to_display(render(scene, seed=seed))
+
+    reference = display(2048, "independent", seed=7)
+    noise = {sampler: float(np.sqrt(((display(spp, sampler) - reference) ** 2).mean()))
+             for sampler, spp in (("independent", 64), (constants.CAPTURE_PREVIEW_SAMPLER, constants.CAPTURE_PREVIEW_SPP))}
+    assert noise[constants.CAPTURE_PREVIEW_SAMPLER] <= 1.05 * noise["independent"], noise

@@ -78,7 +78,8 @@ def environment_part(environment: str) -> dict:
 
 def shape_scene(material, shape: str = "sphere", environment: str = "studio", tiles: float = 2.0,
                 spp: int = constants.DEFAULT_SPP, resolution: int = constants.PREVIEW_RESOLUTION,
-                convention: str = constants.DEFAULT_CONVENTION, scale: float = 1.0) -> mi.Scene:
+                convention: str = constants.DEFAULT_CONVENTION, scale: float = 1.0,
+                sampler: str = "independent") -> mi.Scene:
     """The material on an object under an environment, path traced (``preview_shape.xml``).
 
     Args:
@@ -88,18 +89,19 @@ def shape_scene(material, shape: str = "sphere", environment: str = "studio", ti
         environment: as for ``preview_scene``.
         tiles: how many times the maps repeat across the object [count] (around the sphere: twice
             as many, so that texels stay square).
-        spp, resolution, convention, scale: samples per pixel, image size [pixels], shading
-            convention, radiance scale of the environment.
+        spp, resolution, convention, scale, sampler: samples per pixel, image size [pixels],
+            shading convention, radiance scale of the environment, Mitsuba sampler plugin.
     """
     if shape == "plane":
-        return preview_scene(material, environment, spp, resolution, convention, scale=scale)
+        return preview_scene(material, environment, spp, resolution, convention, scale=scale, sampler=sampler)
     if shape not in SHAPES:
         raise InputError(f"unknown preview shape {shape!r}; expected one of {list(SHAPES)}")
     if not tiles > 0:
         raise InputError(f"preview tiles must be positive, got {tiles}")
     camera = {"sphere": dict(camera_y=-4.6, camera_z=2.2, target_z=0.0, preview_fov=32),
               "cloth": dict(camera_y=-5.0, camera_z=4.2, target_z=0.3, preview_fov=50)}[shape]
-    scene = _load("preview_shape.xml", spp=spp, resolution=resolution, convention=convention, env_scale=scale,
+    scene = _load("preview_shape.xml", spp=spp, sampler=sampler, resolution=resolution, convention=convention,
+                  env_scale=scale,
                   shape_part=f"shape_{shape}.xml", tiles=tiles,
                   **({"tiles_around": 2 * tiles} if shape == "sphere" else {}), **camera,
                   **environment_part(environment))
