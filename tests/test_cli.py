@@ -112,6 +112,16 @@ def test_output_must_be_exr(material_dir, tmp_path, capsys):
     assert ".exr" in capsys.readouterr().err
 
 
+def test_the_console_command_exits_with_mains_status_and_its_message(tmp_path):
+    # run() ends the process without the interpreter's teardown: the status and the flushed
+    # error line must still come out.
+    result = subprocess.run([sys.executable, "-m", "mideepbasis.cli", "render", str(tmp_path / "missing"), "-o",
+                             str(tmp_path / "x.exr")], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2
+    assert result.stderr.startswith("mideepbasis: error:") and result.stderr.count("\n") == 1, result.stderr
+    assert not (tmp_path / "x.exr").exists()
+
+
 def test_console_command_runs_the_demo(tmp_path):
     # The README's first command: capture the bundled photo with the shipped model, compare with its truth.
     result = subprocess.run([sys.executable, "-m", "mideepbasis.cli", "demo", "-o", str(tmp_path / "demo")],
