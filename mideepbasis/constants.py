@@ -109,11 +109,11 @@ PREVIEW_FOV_DEG = 40.0
 #: Resolution of the environment preview [pixels].
 PREVIEW_RESOLUTION = 256
 
-#: Sampler and samples per pixel of a capture's environment preview (the sample on a table):
-#: stratified samples reach the noise of 64 independent ones in 25, at less than half the time
-#: (sRGB RMSE to a 2,048-spp render on three materials: 0.0019 / 0.0135 / 0.0059 against
-#: 0.0023 / 0.0137 / 0.0075; benchmarks/README.md, capture). 25 is the square of a prime, as the
-#: orthogonal sampler needs.
+#: Sampler and samples per pixel of a capture's environment preview (the sample on a table): 25
+#: stratified samples are about as noisy as 64 independent ones, in half the time (sRGB RMSE to
+#: a 2,048-spp render on three materials 0.0019 / 0.0135 / 0.0119 against 0.0024 / 0.0141 /
+#: 0.0116, 349 - 391 ms against 726 - 830 ms: benchmarks/preview_noise.py). 25 is the square of a
+#: prime, as the orthogonal sampler needs.
 CAPTURE_PREVIEW_SAMPLER = "orthogonal"
 CAPTURE_PREVIEW_SPP = 25
 
