@@ -1,6 +1,6 @@
 """Where the normal error lives: the shared test set's relief by scale, and a model's normals beside it.
 
-    .venv/bin/python benchmarks/normal_bands.py [--model CKPT] [-o benchmarks/results/normal_bands.json]
+    .venv/bin/python benchmarks/normal_bands.py [--model CKPT] [--symmetrise 8] [-o benchmarks/results/normal_bands.json]
     .venv/bin/python benchmarks/normal_bands.py --procedural 48 [--coarse-relief-tilt-deg 1 15]
 
 On the shared test set (the photos of ``evaluate``'s default protocol: seeded hand-held flashes,
@@ -12,6 +12,10 @@ light known, the network at its training resolution; only measured, never traine
 - the normal's x and y split into three bands by scale (coarse: features of more than 1/16 of
   the image; middle: 1/64 - 1/16; fine: the rest, at 256 px), and for each band the true
   energy (RMS), the model's energy, its error (RMS) and the correlation of prediction and truth.
+
+``--symmetrise K``: the normal unit averaged over K of the 8 mirrored and turned copies of its
+input (test-time augmentation; a moved photo under the moved flash is the photo moved), each
+output moved back.
 
 ``--procedural N``: the same bands of the true normals of N training materials (seeds 5000 on,
 128 px, shown at 256 px), with the generator's defaults or its ``coarse_relief_tilt_deg``, beside
@@ -75,6 +79,25 @@ def procedural_bands(args) -> None:
     write_report(args.output.with_name(args.output.stem + "_procedural.json"), "normal_bands", report)
 
 
+class DihedralAverage(torch.nn.Module):
+    """A normal unit run on ``moves`` mirrored and turned copies of its relief inputs, its outputs
+    moved back and averaged (test-time augmentation; ``--symmetrise``): moves 1 is the unit itself."""
+
+    def __init__(self, unit: torch.nn.Module, moves: int):
+        super().__init__()
+        self.unit, self.moves = unit, [(mirror, turns) for mirror in (False, True) for turns in range(4)][:moves]
+
+    def forward(self, relief: torch.Tensor) -> torch.Tensor:
+        from mideepbasis.model.inputs import RELIEF_DIRECTION_CHANNEL
+        from mideepbasis.train import dihedral
+
+        total = 0.0
+        for mirror, turns in self.moves:
+            slope = self.unit(dihedral(relief, RELIEF_DIRECTION_CHANNEL, mirror, turns))
+            total = total + dihedral(dihedral(slope, 0, False, -turns), 0, mirror, 0)
+        return total / len(self.moves)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
@@ -82,6 +105,8 @@ def main() -> None:
     parser.add_argument("--procedural", type=int, default=0, help="only the bands of this many training materials")
     parser.add_argument("--coarse-relief-tilt-deg", type=float, nargs=2, default=None,
                         help="the generator's coarse_relief_tilt_deg for --procedural")
+    parser.add_argument("--symmetrise", type=int, default=1, choices=range(1, 9),
+                        help="average the normal unit over this many mirrored and turned copies of its input")
     args = parser.parse_args()
     if not SHARED_TEST.is_dir():
         raise SystemExit(f"{SHARED_TEST} is absent")
@@ -98,6 +123,8 @@ def main() -> None:
     floors.update({"oracle_mean_normal": stored_rmse(mean_normal, truth), "flat": stored_rmse(flat, truth)})
 
     model = load_model(args.model)
+    if args.symmetrise > 1:
+        model.normal_unit = DihedralAverage(model.normal_unit, args.symmetrise)
     fov = constants.DEFAULT_FOV_DEG
     capturer = Capturer(model, CaptureConfig(fov=fov))
     offsets = evaluation_offsets(len(truth), 0, fov)
@@ -108,7 +135,7 @@ def main() -> None:
                                      model.config.convention, model.config.plane_extent)
             predicted.append(capturer.predict(Photo(photos[0], fov, "argument"), offsets[index]).maps[:, constants.NORMAL])
     predicted = torch.cat(predicted)
-    report = {"model": args.model or "shipped", "floors": floors, "model_rmse": stored_rmse(predicted, truth), "bands": {}}
+    report = {"model": args.model or "shipped", "symmetrise": args.symmetrise, "floors": floors, "model_rmse": stored_rmse(predicted, truth), "bands": {}}
     for name, true_band in bands(truth[:, :2]).items():
         predicted_band = bands(predicted[:, :2])[name]
         correlation = float((predicted_band * true_band).sum() / (predicted_band.norm() * true_band.norm()))
