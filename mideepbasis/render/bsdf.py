@@ -87,13 +87,22 @@ class SVBRDF(mi.BSDF):
         if not (has_diffuse or has_specular):
             return mi.Color3f(0.0), mi.Float(0.0)
         normal, diffuse, roughness, specular = self.maps(si, active)
-        lobes = dict(include_diffuse=has_diffuse, include_specular=has_specular)
-        value = (shading.eval_cosine(self.convention, normal, si.wi, wo, diffuse, roughness, specular, **lobes)
+        value = (self.eval_maps(normal, diffuse, roughness, specular, si.wi, wo, has_diffuse, has_specular)
                  if with_value else mi.Color3f(0.0))
         pdf = (shading.pdf_direction(self.convention, normal, si.wi, wo, diffuse, roughness, specular,
                                      has_diffuse=has_diffuse, has_specular=has_specular)
                if with_pdf else mi.Float(0.0))
         return dr.select(active, value, 0.0), dr.select(active, pdf, 0.0)
+
+    def eval_maps(self, normal: mi.Vector3f, diffuse: mi.Color3f, roughness: mi.Float, specular: mi.Color3f,
+                  wi: mi.Vector3f, wo: mi.Vector3f, include_diffuse: bool = True,
+                  include_specular: bool = True) -> mi.Color3f:
+        """``eval`` (f * cos) with the maps given per lane instead of looked up in the textures
+        (``normal`` a unit vector, as ``maps`` returns it): for renders whose maps change every
+        step inside a frozen drjit function (``render.fit``), where a texture update cannot be
+        recorded."""
+        return shading.eval_cosine(self.convention, normal, wi, wo, diffuse, roughness, specular,
+                                   include_diffuse=include_diffuse, include_specular=include_specular)
 
     def eval(self, ctx, si, wo, active=True):
         return self._value_and_pdf(ctx, si, wo, active, with_value=True, with_pdf=False)[0]

@@ -26,6 +26,11 @@ from .bsdf import MAP_NAMES
 _CHANNELS = {"normal": 3, "diffuse": 3, "roughness": 1, "specular": 3}
 
 
+def plane_point(row: mi.Float, col: mi.Float, height: int, width: int, extent: float) -> mi.Point3f:
+    """The point of the sample plane that pixel (row, col) of an h x w image sees [patch half-widths]."""
+    return mi.Point3f(extent * (dr.fma(2.0, col, 1.0) / width - 1.0), extent * (1.0 - dr.fma(2.0, row, 1.0) / height), 0.0)
+
+
 class FlashRenderer:
     """Holds one ``svbrdf`` plugin whose four textures are replaced before each render.
 
@@ -80,9 +85,7 @@ class FlashRenderer:
         col = pixel - row * width
         material = light_index // per_material
         row_f, col_f = mi.Float(row), mi.Float(col)
-
-        point = mi.Point3f(extent * (dr.fma(2.0, col_f, 1.0) / width - 1.0),
-                           extent * (1.0 - dr.fma(2.0, row_f, 1.0) / height), 0.0)
+        point = plane_point(row_f, col_f, height, width, extent)
         to_light = dr.gather(mi.Point3f, lights, light_index) - point
         direction = dr.normalize(to_light)
         to_view = direction if views is None else dr.normalize(dr.gather(mi.Point3f, views, light_index) - point)
@@ -94,3 +97,17 @@ class FlashRenderer:
         value = self.bsdf.eval(mi.BSDFContext(), si, direction)
         radiance = value * shading.flash_factor(self.convention, to_light, intensity)
         return mi.TensorXf(dr.ravel(radiance), shape=(batch, per_material, height, width, 3))
+
+    def render_maps(self, normal: mi.Vector3f, diffuse: mi.Color3f, roughness: mi.Float, specular: mi.Color3f,
+                    light: mi.Point3f, height: int, width: int, intensity: float | mi.Float,
+                    extent: float = 1.0) -> mi.Color3f:
+        """``render`` of one material under one co-located flash, its maps given per pixel (row-major
+        arrays of h * w lanes, ``normal`` unit) instead of loaded as textures: the plugin's
+        ``eval_maps``. The pixel (row-major) radiance, h * w lanes."""
+        index = dr.arange(mi.UInt32, height * width)
+        row = index // width
+        point = plane_point(mi.Float(row), mi.Float(index - row * width), height, width, extent)
+        to_light = light - point
+        direction = dr.normalize(to_light)
+        value = self.bsdf.eval_maps(normal, diffuse, roughness, specular, direction, direction)
+        return value * shading.flash_factor(self.convention, to_light, intensity)

@@ -1,0 +1,167 @@
+"""The refinement's loop on the drjit side: a step of Adam on the global bases, recorded once.
+
+``capture.refine.refine_global_bases`` fits the N global bases of a prediction to the photo. Its
+torch loop crosses to drjit and back at every step (the bridge), and the tracing of the plugin's
+Python code, not the arithmetic, takes most of each step's 4 - 8 ms at 64 x 64 pixels. Here the
+whole step (the blend, the plugin's evaluation, the loss, its gradient and the Adam update) is
+one ``dr.freeze`` function: traced at its first call, then replayed as a few kernels.
+
+The same arithmetic as the torch loop (``compose_bases``, ``to_maps``, clipping, mean L1, the
+prior, ``SmallAdam``), so the same result to float rounding (``tests/test_refine.py``). Two
+choices keep a step to a few kernels:
+
+- the maps change at every step, and a texture update cannot be recorded: the plugin is evaluated
+  with the maps given per pixel (``SVBRDF.eval_maps``);
+- the gradient of the N x 10 bases is a sum over every pixel. Each basis value enters the blend
+  through its own per-pixel copy (``gather`` of the packed (N x 10) x pixels array, whose
+  backward writes each entry once), and one ``block_sum`` turns their gradients into the N x 10
+  sums; autodiff through a gather of the N x 10 values themselves would scatter every pixel's
+  share into the same few addresses.
+
+Data cross from torch here as numpy arrays, at the start and the end of the loop (the bridge is
+the crossing for renders inside torch's autograd).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .bridge import flash_renderer
+
+#: Adam's moment decay rates and epsilon, as ``torch.optim.Adam``'s defaults (``SmallAdam``).
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
+
+
+@dataclass
+class FitInputs:
+    """What a refinement holds fixed, as drjit arrays (a PyTree: the frozen step's input).
+
+    Shapes: N bases, P = r * r pixels (row-major), K = N * 10 basis values (basis-major).
+    """
+
+    weights: list
+    """N arrays of P: the blending weights (sum 1 per pixel)."""
+
+    deviations: mi.Float
+    """K * P: the local deviations, value k of pixel p at k * P + p (signed space)."""
+
+    predicted: mi.Float
+    """K: the network's global bases (signed space)."""
+
+    movable: mi.Float
+    """K: 1 where a basis value may move, 0 where it stays as predicted (the normals by default)."""
+
+    target: mi.Color3f
+    """P: the photo, linear, area-averaged to r x r."""
+
+    light: mi.Point3f
+    """1: the flash position [patch half-widths]."""
+
+    intensity: mi.Float
+    """1: the flash intensity (``geometry.flash_intensity``)."""
+
+    lr: mi.Float
+    """1: Adam's learning rate."""
+
+    prior: mi.Float
+    """1: the weight of the mean L1 pull of the bases toward the predicted ones."""
+
+    DRJIT_STRUCT = {"weights": list, "deviations": mi.Float, "predicted": mi.Float, "movable": mi.Float,
+                    "target": mi.Color3f, "light": mi.Point3f, "intensity": mi.Float, "lr": mi.Float,
+                    "prior": mi.Float}
+
+
+def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int, size: int):
+    """The blended maps of global bases ``current`` (K) plus the deviations, as ``to_maps`` of
+    ``compose_bases``: (unit normal, diffuse, roughness, specular) per pixel, and the packed
+    per-pixel copies of ``current`` whose gradients are the bases' (``_step``)."""
+    channels = 10
+    packed = dr.gather(mi.Float, current, dr.arange(mi.UInt32, bases * channels * pixels) // pixels)
+    dr.enable_grad(packed)
+    values = packed + data.deviations
+    index = dr.arange(mi.UInt32, pixels)
+    blended = [None] * channels
+    for basis in range(bases):
+        value = [dr.gather(mi.Float, values, (basis * channels + c) * pixels + index) for c in range(channels)]
+        normal = mi.Vector3f(value[0], value[1], value[2])
+        normal = normal / (dr.norm(normal) + 1e-12)  # normalize_basis_normals
+        value[0:3] = [normal.x, normal.y, normal.z]
+        weight = data.weights[basis]
+        for c in range(channels):
+            term = weight * dr.clip(value[c], -1.0, 1.0)
+            blended[c] = term if blended[c] is None else blended[c] + term
+    normal = mi.Vector3f(blended[0], blended[1], dr.maximum(blended[2], 0.0))
+    normal = normal / dr.sqrt(dr.maximum(dr.squared_norm(normal), 1e-12))
+    rest = [dr.clip(value * 0.5 + 0.5, 0.0, 1.0) for value in blended[3:]]
+    return (normal, mi.Color3f(rest[0], rest[1], rest[2]), rest[3], mi.Color3f(rest[4], rest[5], rest[6])), packed
+
+
+def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step: mi.Float, data: FitInputs,
+          bases: int, size: int, convention: str, extent: float):
+    """One refinement step: (the bases after it, Adam's moments, the loss before it)."""
+    pixels = size * size
+    count = bases * 10
+    current = data.predicted + (free - data.predicted) * data.movable
+    maps, packed = _blend(current, data, bases, pixels, size)
+    radiance = flash_renderer(convention).render_maps(*maps, data.light, size, size, data.intensity, extent)
+    loss = dr.sum(dr.abs(dr.clip(radiance, 0.0, 1.0) - data.target), axis=None) / (3 * pixels)
+    dr.backward(loss)
+    difference = current - data.predicted
+    # d/d current of prior * mean |current - predicted| (torch's |x| has gradient 0 at 0)
+    prior_gradient = data.prior / count * dr.select(difference > 0, 1.0, dr.select(difference < 0, -1.0, 0.0))
+    gradient = (dr.block_sum(dr.grad(packed), pixels) + prior_gradient) * data.movable
+    prior_term = data.prior * dr.sum(dr.abs(difference)) / count
+    beta1, beta2 = ADAM_BETAS
+    first_moment = dr.lerp(first_moment, gradient, 1 - beta1)
+    second_moment = second_moment * beta2 + (1 - beta2) * gradient * gradient
+    bias_correction1 = 1 - dr.power(beta1, step)
+    bias_correction2_sqrt = dr.sqrt(1 - dr.power(beta2, step))
+    denominator = dr.sqrt(second_moment) / bias_correction2_sqrt + ADAM_EPS
+    free = dr.clip(dr.detach(free) - data.lr / bias_correction1 * first_moment / denominator, -1.0, 1.0)
+    return free, first_moment, second_moment, dr.detach(loss) + prior_term
+
+
+#: The step, recorded at its first call with each (bases, size, convention, extent) and replayed after.
+_frozen_step = dr.freeze(_step)
+
+
+def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.ndarray, movable: np.ndarray,
+                     target: np.ndarray, light: np.ndarray, intensity: float, convention: str, extent: float,
+                     steps: int, lr: float, prior: float, progress=None) -> tuple[np.ndarray, list[float]]:
+    """Adam on the global bases so the plugin's render of the blend matches the photo.
+
+    Args:
+        weights: (N, r, r); deviations: (N, 10, r, r) signed space; predicted: (N, 10) the
+            network's global bases; movable: (10,) 1 where a channel may move; target: (3, r, r)
+            linear; light: (3,) [patch half-widths]; intensity: the flash's; convention, extent:
+            the shading convention and the sample's half-width [patch half-widths]; steps, lr,
+            prior: as ``RefineConfig``; progress: wraps the range of steps (e.g. ``tqdm``).
+
+    Returns:
+        ((N, 10) the refined bases, the loss at every step).
+    """
+    bases, size = weights.shape[0], weights.shape[-1]
+    count = bases * 10
+    as_float = lambda array: mi.Float(np.ascontiguousarray(array, dtype=np.float32).reshape(-1))  # noqa: E731
+    target = np.asarray(target, dtype=np.float32).reshape(3, -1)
+    data = FitInputs(weights=[as_float(w) for w in weights], deviations=as_float(deviations),
+                     predicted=as_float(predicted), movable=as_float(np.tile(movable, bases)),
+                     target=mi.Color3f(*[as_float(channel) for channel in target]),
+                     light=mi.Point3f(*[float(x) for x in np.asarray(light).reshape(3)]),
+                     intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), prior=mi.Float(float(prior)))
+    free = mi.Float(data.predicted)
+    first_moment, second_moment = dr.zeros(mi.Float, count), dr.zeros(mi.Float, count)
+    # Evaluated inputs (not literals): every call then matches the one recording.
+    dr.make_opaque(free, first_moment, second_moment, data.light, data.intensity, data.lr, data.prior)
+    losses = []
+    for step in (progress or (lambda steps: steps))(range(1, steps + 1)):
+        free, first_moment, second_moment, loss = _frozen_step(free, first_moment, second_moment, mi.Float(step),
+                                                                data, bases, size, convention, float(extent))
+        losses.append(loss)
+    refined = np.array(data.predicted + (free - data.predicted) * data.movable, dtype=np.float32).reshape(bases, 10)
+    return refined, [float(loss[0]) for loss in losses]
