@@ -26,6 +26,8 @@ normal_bands_procedural.json).
 from __future__ import annotations
 
 import argparse
+import statistics
+import time
 from pathlib import Path
 
 import mideepbasis  # noqa: F401
@@ -128,14 +130,18 @@ def main() -> None:
     fov = constants.DEFAULT_FOV_DEG
     capturer = Capturer(model, CaptureConfig(fov=fov))
     offsets = evaluation_offsets(len(truth), 0, fov)
-    predicted = []
+    predicted, seconds = [], []
     with torch.no_grad():
         for index in range(len(truth)):
             photos, _ = flash_photos(materials.maps[index:index + 1], offsets[index:index + 1], fov,
                                      model.config.convention, model.config.plane_extent)
-            predicted.append(capturer.predict(Photo(photos[0], fov, "argument"), offsets[index]).maps[:, constants.NORMAL])
+            start = time.perf_counter()
+            prediction = capturer.predict(Photo(photos[0], fov, "argument"), offsets[index])
+            seconds.append(time.perf_counter() - start)
+            predicted.append(prediction.maps[:, constants.NORMAL])
     predicted = torch.cat(predicted)
-    report = {"model": args.model or "shipped", "symmetrise": args.symmetrise, "floors": floors, "model_rmse": stored_rmse(predicted, truth), "bands": {}}
+    report = {"model": args.model or "shipped", "symmetrise": args.symmetrise,
+              "prediction_seconds_median": statistics.median(seconds), "floors": floors, "model_rmse": stored_rmse(predicted, truth), "bands": {}}
     for name, true_band in bands(truth[:, :2]).items():
         predicted_band = bands(predicted[:, :2])[name]
         correlation = float((predicted_band * true_band).sum() / (predicted_band.norm() * true_band.norm()))
@@ -143,7 +149,7 @@ def main() -> None:
                                  "error_rms": rms(predicted_band - true_band), "correlation": correlation}
     for name, value in floors.items():
         print(f"{name}: {value:.4f}")
-    print(f"model: {report['model_rmse']:.4f}")
+    print(f"model: {report['model_rmse']:.4f} (prediction {1000 * report['prediction_seconds_median']:.0f} ms, median)")
     for name, row in report["bands"].items():
         print(f"{name:>6}: truth {row['truth_rms']:.4f}, model {row['model_rms']:.4f}, error {row['error_rms']:.4f}, "
               f"correlation {row['correlation']:.3f}")
