@@ -1,11 +1,12 @@
 """Refinement of the global bases by differentiable rendering.
 
 Only the N global bases move: Adam on the L1 difference between the photo and the rendering of the
-blended material (rendered through the plugin); the weights and local deviations stay fixed. With
-the Mitsuba backend the loop runs on the drjit side, each step one frozen drjit function
-(``render.fit``: 0.3 s for the default 125 steps where the torch loop, crossing the bridge at every
-step, took 0.8 - 0.9 s); with the torch backend, in torch (``_fit_torch``, also its reference). It runs on a downsampled copy: the global bases are a few numbers, and
-the photo's large-scale appearance determines them.
+blended material (rendered through the plugin); the weights and local deviations stay fixed. It
+runs on a downsampled copy: the global bases are a few numbers, and the photo's large-scale
+appearance determines them. With the Mitsuba backend the loop runs on the drjit side, each step
+one frozen drjit function (``render.fit``: 0.3 s for the default 125 steps where the torch loop,
+crossing the bridge at every step, took 0.8 - 0.9 s); with the torch backend, in torch
+(``_fit_torch``, also the reference of the drjit loop).
 
 Shapes: photo (3, H, W) linear; light (3,) [patch half-widths]; global bases (1, N, 10) signed space.
 """

@@ -7,7 +7,8 @@ whole step (the blend, the plugin's evaluation, the loss, its gradient and the A
 one ``dr.freeze`` function: traced at its first call, then replayed as a few kernels.
 
 The same arithmetic as the torch loop (``compose_bases``, ``to_maps``, clipping, mean L1, the
-prior, ``SmallAdam``), so the same result to float rounding (``tests/test_refine.py``). Two
+prior, ``SmallAdam``), so the same result to float rounding
+(``tests/test_capture.py::test_the_frozen_drjit_refinement_loop_is_the_torch_loop``). Two
 choices keep a step to a few kernels:
 
 - the maps change at every step, and a texture update cannot be recorded: the plugin is evaluated
@@ -30,6 +31,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .. import constants
 from .bridge import flash_renderer
 
 #: Adam's moment decay rates and epsilon, as ``torch.optim.Adam``'s defaults (``SmallAdam``).
@@ -76,11 +78,11 @@ class FitInputs:
                     "prior": mi.Float}
 
 
-def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int, size: int):
+def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int):
     """The blended maps of global bases ``current`` (K) plus the deviations, as ``to_maps`` of
     ``compose_bases``: (unit normal, diffuse, roughness, specular) per pixel, and the packed
     per-pixel copies of ``current`` whose gradients are the bases' (``_step``)."""
-    channels = 10
+    channels = constants.BASIS_CHANNELS
     packed = dr.gather(mi.Float, current, dr.arange(mi.UInt32, bases * channels * pixels) // pixels)
     dr.enable_grad(packed)
     values = packed + data.deviations
@@ -105,9 +107,9 @@ def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step:
           bases: int, size: int, convention: str, extent: float):
     """One refinement step: (the bases after it, Adam's moments, the loss before it)."""
     pixels = size * size
-    count = bases * 10
+    count = bases * constants.BASIS_CHANNELS
     current = data.predicted + (free - data.predicted) * data.movable
-    maps, packed = _blend(current, data, bases, pixels, size)
+    maps, packed = _blend(current, data, bases, pixels)
     radiance = flash_renderer(convention).render_maps(*maps, data.light, size, size, data.intensity, extent)
     loss = dr.sum(dr.abs(dr.clip(radiance, 0.0, 1.0) - data.target), axis=None) / (3 * pixels)
     dr.backward(loss)
@@ -146,7 +148,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
         ((N, 10) the refined bases, the loss at every step).
     """
     bases, size = weights.shape[0], weights.shape[-1]
-    count = bases * 10
+    count = bases * constants.BASIS_CHANNELS
     as_float = lambda array: mi.Float(np.ascontiguousarray(array, dtype=np.float32).reshape(-1))  # noqa: E731
     target = np.asarray(target, dtype=np.float32).reshape(3, -1)
     data = FitInputs(weights=[as_float(w) for w in weights], deviations=as_float(deviations),
@@ -163,5 +165,5 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
         free, first_moment, second_moment, loss = _frozen_step(free, first_moment, second_moment, mi.Float(step),
                                                                 data, bases, size, convention, float(extent))
         losses.append(loss)
-    refined = np.array(data.predicted + (free - data.predicted) * data.movable, dtype=np.float32).reshape(bases, 10)
+    refined = np.array(data.predicted + (free - data.predicted) * data.movable, dtype=np.float32).reshape(bases, constants.BASIS_CHANNELS)
     return refined, [float(loss[0]) for loss in losses]
