@@ -629,7 +629,8 @@ class Trainer:
         """Start from a checkpoint's weights. It may differ from this run's network in the optional
         inputs (their weights start at zero: ``widen_inputs``) and in the sizes of the local and the
         normal units (a unit whose size differs, or that the checkpoint lacks, starts afresh;
-        everything else is loaded)."""
+        everything else is loaded), except that a normal unit of the same width and levels with more
+        blocks keeps the checkpoint's blocks, the added ones starting as the identity."""
         from dataclasses import replace
 
         from .model.checkpoint import load_model
@@ -638,18 +639,25 @@ class Trainer:
         config = self.model.config
         local_fields = {name: getattr(config, name) for name in LOCAL_UNIT_FIELDS}
         if replace(source.config, extra_inputs=config.extra_inputs, normal_unit_width=config.normal_unit_width,
-                   **local_fields) != config:
+                   normal_unit_blocks=config.normal_unit_blocks,
+                   normal_unit_middle_blocks=config.normal_unit_middle_blocks, **local_fields) != config:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
                              "preset) in more than the optional inputs and the sizes of the local and normal units")
         state, target = source.state_dict(), self.model.state_dict()
         fresh = []
         if any(getattr(source.config, name) != value for name, value in local_fields.items()):
             fresh.append("local_unit.")
-        if source.config.normal_unit_width != config.normal_unit_width:
+        before, after = source.config, config
+        if (before.normal_unit_width != after.normal_unit_width
+                or len(before.normal_unit_blocks) != len(after.normal_unit_blocks)
+                or any(b > a for b, a in zip(before.normal_unit_blocks, after.normal_unit_blocks))
+                or before.normal_unit_middle_blocks > after.normal_unit_middle_blocks):
             fresh.append("normal_unit.")
         if fresh:  # those units start afresh
             state = {name: value for name, value in state.items() if not name.startswith(tuple(fresh))}
             state.update({name: value for name, value in target.items() if name.startswith(tuple(fresh))})
+        # A deepened normal unit keeps its blocks; the added ones start as they are built (the identity).
+        state.update({name: value for name, value in target.items() if name not in state})
         if source.config.extra_inputs != config.extra_inputs:
             state = widen_inputs(state, target, source.config.input_channels)
         self.model.load_state_dict(state)

@@ -351,6 +351,34 @@ def test_train_only_the_normal_unit_from_a_network_without_one(tmp_path):
         tiny_config(tmp_path, train_only=("decoder",))
 
 
+def test_a_deepened_normal_unit_starts_as_the_checkpoint_it_grew_from(tmp_path):
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    source = DeepBasisNet(preset("tiny", normal_unit_width=4)).eval()
+    with torch.no_grad():  # residual scales away from their zero start, so every block computes something
+        for name, parameter in source.named_parameters():
+            if name.endswith(("beta", "gamma")):
+                parameter.normal_(0.0, 0.5)
+    path = save_checkpoint(tmp_path / "source.safetensors", source)
+    deeper = {"normal_unit_width": 4, "normal_unit_blocks": (1, 1, 2, 2), "normal_unit_middle_blocks": 3}
+    model = Trainer(tiny_config(tmp_path / "d", init=str(path), network=deeper), progress=False).model.eval()
+    assert len(model.normal_unit.middle_blks) == 3 and len(model.normal_unit.encoders[3]) == 2
+    assert len(model.normal_unit.decoders[0]) == 2 and len(model.normal_unit.decoders[3]) == 1
+    inputs = torch.rand(2, 9, 32, 32) * 2 - 1
+    lights = torch.tensor([[0.1, 0.0, 2.4], [0.0, -0.2, 2.4]])
+    with torch.no_grad():
+        torch.testing.assert_close(model(inputs, lights).maps, source(inputs, lights).maps, rtol=1e-5, atol=1e-6)
+    # A shallower unit cannot keep what the checkpoint's computed: it starts afresh, the rest loaded.
+    shallower = {"normal_unit_width": 4, "normal_unit_blocks": (1, 1, 1, 1), "normal_unit_middle_blocks": 1}
+    loaded = Trainer(tiny_config(tmp_path / "s", init=str(path), network=shallower), progress=False).model.state_dict()
+    original = source.state_dict()
+    assert all(torch.equal(loaded[name], value) for name, value in original.items() if not name.startswith("normal_unit."))
+    fresh_scales = [value for name, value in loaded.items() if name.startswith("normal_unit.") and name.endswith("beta")]
+    assert fresh_scales and all(not value.any() for value in fresh_scales)
+
+
 def moved_point(point: torch.Tensor, mirror: bool, turns: int) -> torch.Tensor:
     """A point (3,) of the scene mirrored (x -> -x), then turned about z by quarter turns."""
     angle = math.pi / 2 * turns

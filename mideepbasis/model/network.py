@@ -97,12 +97,24 @@ class NetworkConfig:
     unit. (A separately trained 1.6M-parameter unit beat the flat normal on the shared test set
     where the whole network, trained for its maps, had stayed flat: MODEL.md.)"""
 
+    normal_unit_blocks: tuple[int, ...] = (1, 1, 1, 1)
+    """NAF blocks per level of the normal unit, in its encoder and decoder alike (one level per
+    entry, from the full resolution down, each halving it). A block starts as the identity (its residual scales are
+    zero), so a checkpoint's unit deepened here computes what it did until trained."""
+
+    normal_unit_middle_blocks: int = 2
+    """NAF blocks at the bottom of the normal unit (1/16 of the resolution with four levels), where
+    it sees the broad relief."""
+
     def __post_init__(self):
         unknown = sorted(set(self.extra_inputs) - set(EXTRA_INPUTS))
         if unknown:
             raise ValueError(f"unknown extra inputs {unknown}; expected some of {list(EXTRA_INPUTS)}")
         if self.normal_unit_width and not (self.use_bases and self.use_local):
             raise ValueError("the normal unit adds to the local deviations: it needs use_bases and use_local")
+        if self.normal_unit_width and len(self.normal_unit_blocks) > len(self.encoder_channels):
+            raise ValueError(f"the normal unit's {len(self.normal_unit_blocks)} levels need inputs in multiples "
+                             f"of 2^{len(self.normal_unit_blocks)}: at most the encoder's {len(self.encoder_channels)}")
 
     @property
     def input_channels(self) -> int:
@@ -115,14 +127,11 @@ class NetworkConfig:
         return 2 ** len(self.encoder_channels)
 
 
-#: NAF blocks per level of the normal unit (four levels, two blocks at the bottom).
-NORMAL_UNIT_BLOCKS = (1, 1, 1, 1)
-
-
-def normal_unit(width: int) -> NAFNet:
-    """The normal unit's NAFNet (``NetworkConfig.normal_unit_width``): the relief inputs to the
-    normal's x and y slope, before their tanh."""
-    return NAFNet(RELIEF_CHANNELS, 2, width, NORMAL_UNIT_BLOCKS, 2, NORMAL_UNIT_BLOCKS, 3)
+def normal_unit(width: int, blocks: tuple[int, ...] = (1, 1, 1, 1), middle_blocks: int = 2) -> NAFNet:
+    """The normal unit's NAFNet (``NetworkConfig.normal_unit_width``, ``normal_unit_blocks``,
+    ``normal_unit_middle_blocks``): the relief inputs to the normal's x and y slope, before their
+    tanh."""
+    return NAFNet(RELIEF_CHANNELS, 2, width, tuple(blocks), middle_blocks, tuple(reversed(blocks)), 3)
 
 
 PRESETS = {
@@ -457,7 +466,8 @@ class DeepBasisNet(nn.Module):
                                      config.local_encoder_blocks, config.local_middle_blocks, config.local_decoder_blocks,
                                      config.local_ending_kernel)
         if config.normal_unit_width:
-            self.normal_unit = normal_unit(config.normal_unit_width)
+            self.normal_unit = normal_unit(config.normal_unit_width, config.normal_unit_blocks,
+                                           config.normal_unit_middle_blocks)
 
     def forward(self, inputs: torch.Tensor, lights: torch.Tensor | None = None,
                 fov: float = constants.DEFAULT_FOV_DEG) -> DeepBasisOutput:
