@@ -195,3 +195,41 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
     from . import bridge
 
     return bridge.render_flash(maps, lights, intensity, convention, views=views, extent=extent)
+
+
+def flash_l1(maps, photo, lights, *, fov: float | None = None, convention: str | None = None,
+             intensity: float | None = None, backend: str | None = None, extent: float = 1.0):
+    """Mean L1 between a photo and the clipped flash render of one material under each of K
+    lights: the lighting search's objective. The ``mitsuba`` backend renders and reduces in one
+    kernel of the plugin (no K images are made); ``torch`` is ``render_flash``'s reference and a
+    mean. Not differentiable.
+
+    Args:
+        maps: (1, 10, H, W); photo: (1, 3, H, W) linear; lights: (K, 3) [patch half-widths].
+        fov, convention, intensity, backend, extent: as ``render_flash``.
+
+    Returns:
+        (K,).
+    """
+    from .. import constants, geometry
+    from . import reference
+
+    convention = convention or constants.DEFAULT_CONVENTION
+    backend = backend or _default_backend
+    if intensity is None:
+        intensity = geometry.flash_intensity(fov or constants.DEFAULT_FOV_DEG, convention)
+    if backend not in RENDER_BACKENDS:
+        raise ValueError(f"unknown render backend {backend!r}; expected one of {list(RENDER_BACKENDS)}")
+    if backend == "torch":
+        import torch
+
+        errors = []
+        with torch.no_grad():
+            for chunk in lights.split(64):  # 64 lights' images at a time
+                rendered = reference.render_flash(maps, chunk[None], intensity, convention, extent=extent)[0]
+                errors.append((rendered.clamp(0.0, 1.0) - photo).abs().mean(dim=(1, 2, 3)))
+        return torch.cat(errors)
+    _require_mitsuba()
+    from . import bridge
+
+    return bridge.flash_l1(maps, photo, lights, intensity, convention, extent=extent)

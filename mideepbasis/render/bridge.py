@@ -36,6 +36,13 @@ def _render_flash_drjit(normal, diffuse, roughness, specular, lights, views, int
     return renderer.render(positions, batch, height, width, mi.Float(intensity.array), viewpoints, extent)
 
 
+@dr.wrap(source="torch", target="drjit")
+def _mean_l1_drjit(normal, diffuse, roughness, specular, photo, lights, intensity, convention, extent):
+    renderer = flash_renderer(convention)
+    renderer.set_maps(normal, diffuse, roughness, specular)
+    return renderer.mean_l1(dr.unravel(mi.Point3f, lights.array), photo, mi.Float(intensity.array), extent)
+
+
 def _to_texture(maps: torch.Tensor) -> torch.Tensor:
     """(B, C, H, W) -> (B*H, W, C), contiguous."""
     batch, channels, height, width = maps.shape
@@ -70,3 +77,27 @@ def render_flash(maps: torch.Tensor, lights: torch.Tensor, intensity: float,
                                 torch.tensor([float(intensity)], device=maps.device), batch, convention,
                                 float(extent))
     return image.permute(0, 1, 4, 2, 3).to(maps.dtype)
+
+
+def flash_l1(maps: torch.Tensor, photo: torch.Tensor, lights: torch.Tensor, intensity: float,
+             convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
+    """Mean L1 between ``photo`` and the clipped flash render of ``maps`` under each light, the
+    render and the reduction in one kernel of the ``svbrdf`` plugin (``FlashRenderer.mean_l1``).
+    Not differentiable.
+
+    Args:
+        maps: (1, 10, H, W); photo: (1, 3, H, W) linear; lights: (K, 3) [patch half-widths].
+
+    Returns:
+        (K,).
+    """
+    if maps.ndim != 4 or maps.shape[:2] != (1, constants.BASIS_CHANNELS):
+        raise ValueError(f"maps must have shape (1, {constants.BASIS_CHANNELS}, H, W), got {tuple(maps.shape)}")
+    if photo.shape != (1, 3, *maps.shape[-2:]):
+        raise ValueError(f"photo must have shape (1, 3, {maps.shape[-2]}, {maps.shape[-1]}), got {tuple(photo.shape)}")
+    normal, diffuse, roughness, specular = torch.split(maps.detach().float(), [3, 3, 1, 3], dim=1)
+    with torch.no_grad():
+        return _mean_l1_drjit(_to_texture(normal), _to_texture(diffuse), _to_texture(roughness),
+                              _to_texture(specular), _to_texture(photo.detach().float()),
+                              lights.detach().float().reshape(-1, 3), torch.tensor([float(intensity)]),
+                              convention, float(extent)).to(maps.dtype)

@@ -73,9 +73,39 @@ class FlashRenderer:
         Returns:
             linear radiance, shape (B, K, h, w, 3).
         """
+        per_material = self._check_batch(lights, batch)
+        radiance, _ = self._radiance(lights, batch, height, width, intensity, views, extent)
+        return mi.TensorXf(dr.ravel(radiance), shape=(batch, per_material, height, width, 3))
+
+    def mean_l1(self, lights: mi.Point3f, photo: mi.TensorXf, intensity: float | mi.Float,
+                extent: float = 1.0) -> mi.Float:
+        """The mean absolute difference between ``photo`` and the loaded material (one, B = 1)
+        rendered under each light and clipped to [0, 1], reduced in the render's kernel: no
+        K x h x w image is handed back. The lighting search's objective.
+
+        Args:
+            lights: K co-located flash positions [patch half-widths].
+            photo: (h, w, 3) linear; the loaded maps must be h x w.
+
+        Returns:
+            K values, one per light.
+        """
+        height, width = photo.shape[0], photo.shape[1]
+        radiance, pixel = self._radiance(lights, 1, height, width, intensity, None, extent)
+        error = dr.abs(dr.clip(radiance, 0.0, 1.0) - dr.gather(mi.Color3f, photo.array, pixel))
+        return dr.block_sum(error.x + error.y + error.z, height * width) / (3 * height * width)
+
+    @staticmethod
+    def _check_batch(lights: mi.Point3f, batch: int) -> int:
         n_lights = dr.width(lights)
         if n_lights % batch:
             raise ValueError(f"{n_lights} lights do not split evenly over {batch} materials")
+        return n_lights // batch
+
+    def _radiance(self, lights: mi.Point3f, batch: int, height: int, width: int, intensity: float | mi.Float,
+                  views: mi.Point3f | None, extent: float) -> tuple[mi.Color3f, mi.UInt32]:
+        """The radiance of every (light, pixel) lane, light-major, and each lane's pixel (row-major)."""
+        n_lights = dr.width(lights)
         per_material = n_lights // batch
         n_pixels = height * width
         index = dr.arange(mi.UInt32, n_lights * n_pixels)
@@ -95,8 +125,7 @@ class FlashRenderer:
         si.uv = mi.Point2f((col_f + 0.5) / width, (mi.Float(material * height + row) + 0.5) / (batch * height))
         si.wi = to_view
         value = self.bsdf.eval(mi.BSDFContext(), si, direction)
-        radiance = value * shading.flash_factor(self.convention, to_light, intensity)
-        return mi.TensorXf(dr.ravel(radiance), shape=(batch, per_material, height, width, 3))
+        return value * shading.flash_factor(self.convention, to_light, intensity), pixel
 
     def render_maps(self, normal: mi.Vector3f, diffuse: mi.Color3f, roughness: mi.Float, specular: mi.Color3f,
                     light: mi.Point3f, height: int, width: int, intensity: float | mi.Float,

@@ -122,3 +122,27 @@ def test_separate_views_match_torch_reference(convention):
     # A viewpoint at the light gives the flash render back.
     torch.testing.assert_close(bridge.render_flash(maps, lights, 9.0, convention, views=lights),
                                bridge.render_flash(maps, lights, 9.0, convention), rtol=1e-6, atol=1e-7)
+
+
+#: The search objective reduced in the plugin's kernel against the reference render's mean, float32 sums.
+L1_RTOL = 1e-5
+
+
+@pytest.mark.parametrize("convention", ["physical", "deepbasis"])
+def test_mean_l1_in_the_kernel_is_the_mean_of_the_reference_render(convention, fov_height):
+    from mideepbasis.render import flash_l1
+
+    fov, height = fov_height
+    maps = random_maps(1, 30, 26, seed=8, min_roughness=0.05)  # not square: rows and columns stay apart
+    photo = torch.rand(1, 3, 30, 26, generator=torch.Generator().manual_seed(9))
+    lights = torch.tensor([[0.0, 0.0, height], [0.5, -0.2, height], [-0.3, 0.6, 1.5], [0.1, 0.1, height]])
+    intensity = 4.0 * math.pi * height**2 if convention == "physical" else 4.0  # bright: clipping matters
+    rendered = reference.render_flash(maps.double(), lights[None].double(), intensity, convention)[0]
+    assert (rendered > 1).any()
+    expected = (rendered.clamp(0, 1) - photo.double()).abs().mean(dim=(1, 2, 3))
+    for backend in ("mitsuba", "torch"):
+        errors = flash_l1(maps, photo, lights, intensity=intensity, convention=convention, backend=backend)
+        assert errors.shape == (4,) and errors.dtype == torch.float32
+        torch.testing.assert_close(errors.double(), expected, rtol=L1_RTOL, atol=0.0)
+    with pytest.raises(ValueError, match="photo must have shape"):
+        bridge.flash_l1(maps, photo[..., :-1], lights, intensity, convention)
