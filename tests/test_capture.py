@@ -204,7 +204,7 @@ def test_the_network_runs_at_its_training_resolution_and_the_prediction_is_upsam
     assert not torch.allclose(full.global_bases, small.global_bases, atol=1e-4)
 
 
-def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_and_refinement_to_the_bit(tmp_path):
+def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_and_refinement(tmp_path):
     torch.manual_seed(0)
     path = save_checkpoint(tmp_path / "m.safetensors", DeepBasisNet(preset("tiny")).eval(),
                            metadata={"training": {"config": {"size": 32}}})
@@ -216,20 +216,35 @@ def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_an
     assert prediction.output.deviations.shape[-2:] == (32, 32) and prediction.size == (64, 64)
     assert torch.equal(prediction.maps, upsampled.maps)
     assert torch.equal(prediction.output.maps_at(64, 64), upsampled.maps)
-    # The refinement sees the same inputs to the bit...
+    # The refinement sees the same inputs (its matrices, to float rounding, what upsampling the
+    # weights and deviations to the photo's size and averaging them gives) ...
     from mideepbasis.capture.refine import refinement_inputs
 
     resolution = capturer.config.refine.resolution
     for small, large in zip(refinement_inputs(prediction.output, resolution, prediction.size),
                             refinement_inputs(upsampled, resolution)):
-        assert torch.equal(small, large)
-    # ... and gives the same bases (to float rounding: drjit's first, recording call of the frozen
-    # step and its replays may round differently in the last bit).
+        torch.testing.assert_close(small, large, rtol=0.0, atol=1e-6)
+    # ... and gives the same bases (to float rounding).
     refined, losses = capturer.refine(prediction, Photo(photos[0], 45.0, "argument"), (0.1, -0.2))
     bases, reference_losses = refine_global_bases(upsampled, photos[0], lights[0], 45.0, capturer.convention,
                                                   config=capturer.config.refine)
     assert np.abs(np.subtract(losses, reference_losses)).max() < 1e-7
     assert (refined.maps - upsampled.compose(bases).maps).abs().max() < 1e-6
+
+
+@pytest.mark.parametrize("small,large,resolution", [(32, 64, 16), (37, 150, 16), (128, 2048, 64), (20, 20, 8)])
+def test_the_refinement_resamples_by_one_matrix_per_axis(small, large, resolution):
+    from mideepbasis.capture.refine import upsample_then_average
+    from mideepbasis.capture.search import downsample
+    from mideepbasis.model.network import upsample_bilinear
+
+    image = torch.rand(2, 3, small, small + 5, generator=torch.Generator().manual_seed(small))
+    expected = downsample(upsample_bilinear(image.double(), large, large + 9), resolution)
+    rows, columns = upsample_then_average(small, large, resolution), upsample_then_average(small + 5, large + 9, resolution)
+    assert rows.shape == (resolution, small)
+    torch.testing.assert_close(rows.sum(dim=1), torch.ones(resolution))  # averages of interpolations
+    torch.testing.assert_close(torch.einsum("rh,...hw,sw->...rs", rows, image, columns).double(), expected,
+                               rtol=0.0, atol=1e-6)
 
 
 def test_field_of_view_from_the_exif_focal_length():

@@ -13,13 +13,15 @@ Shapes: photo (3, H, W) linear; light (3,) [patch half-widths]; global bases (1,
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import torch
+import torch.nn.functional as F
 
 from .. import constants
 from ..configs import positive_int
-from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps, upsample_bilinear
+from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps
 from .search import downsample
 
 
@@ -74,16 +76,31 @@ class SmallAdam:
         self.parameter.addcdiv_(self.exp_avg, denominator, value=-self.lr / bias_correction1)
 
 
+@functools.lru_cache(maxsize=8)
+def upsample_then_average(small: int, large: int, resolution: int) -> torch.Tensor:
+    """(resolution, small): the matrix of ``upsample_bilinear`` from ``small`` to ``large`` pixels
+    followed by ``downsample`` (area) to ``resolution``, along one axis: both ops applied to the
+    columns of an identity, so it is what they compute, to float rounding."""
+    identity = torch.eye(small, dtype=torch.float64).view(1, small, small, 1)  # one column per input pixel
+    large_columns = F.interpolate(identity, size=(large, 1), mode="bilinear", align_corners=False)
+    averaged = F.interpolate(large_columns, size=(resolution, 1), mode="area")
+    return averaged[0, :, :, 0].T.float().contiguous()
+
+
 def refinement_inputs(output: DeepBasisOutput, resolution: int, size: tuple[int, int] | None = None
                       ) -> tuple[torch.Tensor, torch.Tensor]:
     """The weights (1, N, r, r) and local deviations (1, N, 10, r, r) that the refinement renders
     at ``resolution`` r: those of the prediction shown at ``size`` (its own when None; a larger
-    one upsamples them bilinearly first, one basis at a time, as ``DeepBasisOutput.maps_at``
-    does), area-averaged to r. Zeros for a network without local bases."""
+    one upsamples them bilinearly first, as ``DeepBasisOutput.maps_at`` does), area-averaged to
+    r. The upsampling and averaging are applied as one matrix per axis (``upsample_then_average``),
+    so a 2048 px capture holds nothing at 2048 px here. Zeros for a network without local bases."""
     def resample(value: torch.Tensor) -> torch.Tensor:
-        if size is not None and tuple(value.shape[-2:]) != tuple(size):
-            value = upsample_bilinear(value, *size)
-        return downsample(value, resolution)
+        if size is None or tuple(value.shape[-2:]) == tuple(size):
+            return downsample(value, resolution)
+        # Both steps are linear and separable: one small matrix per axis, never the photo's size.
+        rows = upsample_then_average(value.shape[-2], size[0], resolution)
+        columns = upsample_then_average(value.shape[-1], size[1], resolution)
+        return torch.einsum("rh,...hw,sw->...rs", rows, value, columns)
 
     weights = resample(output.weights.detach().cpu())
     weights = weights / weights.sum(dim=1, keepdim=True).clamp(min=1e-6)
