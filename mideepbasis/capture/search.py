@@ -2,7 +2,7 @@
 
 Starting from the centred flash, each pass predicts the material with the current light (one
 network pass) and then, holding that material fixed, renders it under every candidate light
-within delta = 16.33 deg (batched through the Mitsuba plugin) and moves to the candidate whose
+within delta = 16.33 deg (in one kernel of the Mitsuba plugin) and moves to the candidate whose
 rendering matches the photo best; it stops when the light no longer moves. A final local search
 on a finer grid needs no network pass.
 
@@ -92,22 +92,16 @@ def candidate_offsets(fov: float, max_offset_deg: float, grid: int, centre=(0.0,
 
 
 def light_objective(maps: torch.Tensor, photo: torch.Tensor, offsets: torch.Tensor, fov: float, convention: str,
-                    batch: int = 64, extent: float = 1.0) -> torch.Tensor:
-    """Mean L1 between the photo and the clipped rendering of ``maps`` under each candidate, (K,).
+                    extent: float = 1.0) -> torch.Tensor:
+    """Mean L1 between the photo and the clipped rendering of ``maps`` under each candidate, (K,):
+    ``render.flash_l1``, whose plugin kernel reduces each candidate's image as it renders it.
 
     Args:
         maps: (1, 10, h, w) the material held fixed; photo: (1, 3, h, w); offsets: (K, 2).
     """
-    from ..render import render_flash
+    from ..render import flash_l1
 
-    lights = geometry.light_positions(offsets, fov)
-    errors = []
-    with torch.no_grad():
-        for first in range(0, len(lights), batch):
-            chunk = lights[first:first + batch].unsqueeze(0)
-            rendered = render_flash(maps, chunk, fov=fov, convention=convention, extent=extent)[0].clamp(0.0, 1.0)
-            errors.append((rendered - photo).abs().mean(dim=(1, 2, 3)))
-    return torch.cat(errors)
+    return flash_l1(maps, photo, geometry.light_positions(offsets, fov), fov=fov, convention=convention, extent=extent)
 
 
 def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention: str, extent: float = 1.0,
