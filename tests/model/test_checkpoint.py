@@ -68,6 +68,16 @@ def test_the_inference_contract_is_a_typed_record(saved, tmp_path):
     assert shipped.training_size == 128 and shipped.photo_decoding == "srgb" and shipped.convention == "physical"
 
 
+def test_the_shipped_model_fits_the_package_budget_and_loads_as_float32():
+    from mideepbasis.model.checkpoint import read_checkpoint, shipped_model_path
+
+    path = shipped_model_path()
+    assert path.stat().st_size <= 20_000_000  # issue 11: weights of at most 20 MB in the package
+    _, tensors = read_checkpoint(path)
+    assert {tensor.dtype for tensor in tensors.values()} <= {torch.float16, torch.float32}
+    assert all(parameter.dtype == torch.float32 for parameter in load_model().parameters())
+
+
 def test_wrong_version_is_a_clear_error(saved, tmp_path):
     _, path = saved
     bad = rewrite(path, tmp_path / "v9.safetensors", edit_document=lambda d: d.update(version=9))
