@@ -39,7 +39,7 @@ from .data.procedural import GeneratorConfig
 from .data.synth import SynthesisConfig, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
-from .model.inputs import RELIEF_CHANNELS, RELIEF_DIRECTION_CHANNEL, decode_photo, relief_inputs
+from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, relief_channels, relief_inputs
 from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, to_signed
 
 
@@ -344,17 +344,21 @@ def dihedral(image: torch.Tensor, vector_channel: int | None, mirror: bool, turn
 
 class NormalUnitPool:
     """The training data of the normal unit alone (``TrainConfig.normal_pool``): the relief inputs
-    and true normals of a pool of photographed training materials, renewed a few at a time.
+    and true normals of a pool of photographed training materials, renewed a few at a time. A
+    unit that reads the albedo shading (``NetworkConfig.normal_unit_albedo``) gets the diffuse
+    that ``diffuse_of`` (network inputs, lights) predicts: the frozen rest of the network's.
 
     Before step s the pool holds materials s*R .. s*R + P - 1 of the training sources (P the pool,
     R the refresh), material k in slot k mod P, photographed with a generator of its own: the
     pool at a step is the same whether the run got there in one go or resumed.
     """
 
-    def __init__(self, materials: Dataset, config: TrainConfig, step: int):
-        self.materials, self.config = materials, config
+    def __init__(self, materials: Dataset, config: TrainConfig, step: int, diffuse_of=None):
+        self.materials, self.config, self.diffuse_of = materials, config, diffuse_of
+        if config.network.normal_unit_albedo and diffuse_of is None:
+            raise ValueError("a unit that reads the albedo shading needs the network's diffuse (diffuse_of)")
         size = config.size
-        self.relief = torch.empty(config.normal_pool, RELIEF_CHANNELS, size, size)
+        self.relief = torch.empty(config.normal_pool, relief_channels(config.network.normal_unit_albedo), size, size)
         self.normals = torch.empty(config.normal_pool, 3, size, size)
         first = step * config.normal_pool_refresh
         self._photograph(range(first, first + config.normal_pool))
@@ -366,8 +370,10 @@ class NormalUnitPool:
             maps = self.materials[number][None]
             batch = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + number), config.synthesis)
             slot = number % config.normal_pool
+            diffuse = self.diffuse_of(batch.inputs, batch.lights) if config.network.normal_unit_albedo else None
             self.relief[slot] = relief_inputs(decode_photo(batch.inputs), batch.lights, config.synthesis.fov,
-                                              config.network.convention, config.network.plane_extent)[0]
+                                              config.network.convention, config.network.plane_extent,
+                                              diffuse=diffuse)[0]
             self.normals[slot] = maps[0, constants.NORMAL]
 
     def advance(self) -> None:
@@ -378,7 +384,7 @@ class NormalUnitPool:
 
     def crops(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """A batch of random crops, each mirrored and turned at random: (relief inputs
-        (B, RELIEF_CHANNELS, C, C), true normals (B, 3, C, C))."""
+        (B, relief channels, C, C), true normals (B, 3, C, C))."""
         config, crop = self.config, self.config.normal_crop
         slots = torch.randint(0, config.normal_pool, (config.batch,), generator=generator).tolist()
         corners = torch.randint(0, config.size - crop + 1, (config.batch, 2), generator=generator).tolist()
@@ -639,7 +645,7 @@ class Trainer:
         config = self.model.config
         local_fields = {name: getattr(config, name) for name in LOCAL_UNIT_FIELDS}
         if replace(source.config, extra_inputs=config.extra_inputs, normal_unit_width=config.normal_unit_width,
-                   normal_unit_blocks=config.normal_unit_blocks,
+                   normal_unit_blocks=config.normal_unit_blocks, normal_unit_albedo=config.normal_unit_albedo,
                    normal_unit_middle_blocks=config.normal_unit_middle_blocks, **local_fields) != config:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
                              "preset) in more than the optional inputs and the sizes of the local and normal units")
@@ -658,6 +664,13 @@ class Trainer:
             state.update({name: value for name, value in target.items() if name.startswith(tuple(fresh))})
         # A deepened normal unit keeps its blocks; the added ones start as they are built (the identity).
         state.update({name: value for name, value in target.items() if name not in state})
+        intro = "normal_unit.intro.weight"
+        if "normal_unit." not in fresh and intro in state and state[intro].shape != target[intro].shape:
+            if before.normal_unit_albedo or not after.normal_unit_albedo:
+                raise InputError(f"{path}: its normal unit reads the albedo shading and this run's does not")
+            # The albedo shading enters with zero weights: the unit computes what it did until trained.
+            state[intro] = torch.cat([state[intro], state[intro].new_zeros(state[intro].shape[0], 1,
+                                                                            *state[intro].shape[2:])], dim=1)
         if source.config.extra_inputs != config.extra_inputs:
             state = widen_inputs(state, target, source.config.input_channels)
         self.model.load_state_dict(state)
@@ -785,7 +798,15 @@ class Trainer:
     def pool_crops(self):
         """Batches of the normal pool (``TrainConfig.normal_pool``) from this step on: crops, then
         the pool moves on."""
-        pool = NormalUnitPool(self.materials(), self.config, self.step)
+        model = getattr(self.model, "module", self.model)
+
+        @torch.no_grad()
+        def diffuse_of(inputs: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:
+            # The unit changes only the normal: the diffuse is the frozen rest's, whatever the unit is.
+            output = model(inputs.to(self.device), lights.to(self.device), fov=self.config.synthesis.fov)
+            return output.maps[:, constants.DIFFUSE].float().cpu()
+
+        pool = NormalUnitPool(self.materials(), self.config, self.step, diffuse_of)
         while True:
             yield pool.crops(self.generator)
             pool.advance()

@@ -473,6 +473,39 @@ def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path
         tiny_config(tmp_path, normal_pool=-1)
 
 
+def test_a_unit_given_the_albedo_shading_starts_as_the_checkpoint_and_learns_from_the_pool(tmp_path):
+    from mideepbasis.errors import InputError
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    source_net = DeepBasisNet(preset("tiny", normal_unit_width=4)).eval()
+    with torch.no_grad():
+        for name, parameter in source_net.named_parameters():
+            if name.endswith(("beta", "gamma")):
+                parameter.normal_(0.0, 0.5)
+    source = save_checkpoint(tmp_path / "source.safetensors", source_net)
+    albedo = {"normal_unit_width": 4, "normal_unit_albedo": True}
+    trainer = Trainer(pool_config(tmp_path / "a", init=str(source), network=albedo), progress=False)
+    model = trainer.model.eval()
+    assert model.normal_unit.intro.weight.shape[1] == 8 and not model.normal_unit.intro.weight[:, 7].any()
+    inputs = torch.rand(2, 9, 32, 32) * 2 - 1
+    lights = torch.tensor([[0.1, 0.0, 2.4], [0.0, -0.2, 2.4]])
+    with torch.no_grad():
+        torch.testing.assert_close(model(inputs, lights).maps, source_net(inputs, lights).maps, rtol=1e-5, atol=1e-6)
+    # The pool's eighth channel is the albedo shading of the frozen network's own diffuse.
+    pool = next(trainer.pool_crops())
+    assert pool[0].shape == (2, 8, 16, 16)
+    before = {name: value.clone() for name, value in trainer.model.state_dict().items()}
+    trainer.run()
+    changed = {name for name, value in trainer.model.state_dict().items() if not torch.equal(before[name], value)}
+    assert "normal_unit.intro.weight" in changed and all(name.startswith("normal_unit.") for name in changed)
+    # A unit that read the albedo shading does not go back to one that does not.
+    widened = save_checkpoint(tmp_path / "widened.safetensors", trainer.model)
+    with pytest.raises(InputError, match="reads the albedo shading and this run's does not"):
+        Trainer(pool_config(tmp_path / "b", init=str(widened)), progress=False)
+
+
 def test_training_materials_follow_the_runs_procedural_settings(tmp_path):
     from mideepbasis.train import TrainingMaterials
 

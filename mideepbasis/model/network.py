@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .. import constants
-from .inputs import EXTRA_INPUTS, RELIEF_CHANNELS, ModelInfo, decode_photo, input_channels, relief_inputs
+from .inputs import EXTRA_INPUTS, ModelInfo, decode_photo, input_channels, relief_channels, relief_inputs
 from .nafnet import NAFNet
 
 
@@ -106,6 +106,12 @@ class NetworkConfig:
     """NAF blocks at the bottom of the normal unit (1/16 of the resolution with four levels), where
     it sees the broad relief."""
 
+    normal_unit_albedo: bool = False
+    """Give the normal unit one more input: the photo's shading with the network's own diffuse
+    prediction divided out (``relief_inputs`` with ``diffuse``), so that the unit need not tell
+    colour from relief with its own few features. The diffuse is blended from the bases and local
+    deviations first (the unit changes only the normal), without a gradient through it."""
+
     def __post_init__(self):
         unknown = sorted(set(self.extra_inputs) - set(EXTRA_INPUTS))
         if unknown:
@@ -127,11 +133,12 @@ class NetworkConfig:
         return 2 ** len(self.encoder_channels)
 
 
-def normal_unit(width: int, blocks: tuple[int, ...] = (1, 1, 1, 1), middle_blocks: int = 2) -> NAFNet:
+def normal_unit(width: int, blocks: tuple[int, ...] = (1, 1, 1, 1), middle_blocks: int = 2,
+                albedo: bool = False) -> NAFNet:
     """The normal unit's NAFNet (``NetworkConfig.normal_unit_width``, ``normal_unit_blocks``,
-    ``normal_unit_middle_blocks``): the relief inputs to the normal's x and y slope, before their
-    tanh."""
-    return NAFNet(RELIEF_CHANNELS, 2, width, tuple(blocks), middle_blocks, tuple(reversed(blocks)), 3)
+    ``normal_unit_middle_blocks``, ``normal_unit_albedo``): the relief inputs to the normal's x and
+    y slope, before their tanh."""
+    return NAFNet(relief_channels(albedo), 2, width, tuple(blocks), middle_blocks, tuple(reversed(blocks)), 3)
 
 
 PRESETS = {
@@ -467,7 +474,7 @@ class DeepBasisNet(nn.Module):
                                      config.local_ending_kernel)
         if config.normal_unit_width:
             self.normal_unit = normal_unit(config.normal_unit_width, config.normal_unit_blocks,
-                                           config.normal_unit_middle_blocks)
+                                           config.normal_unit_middle_blocks, config.normal_unit_albedo)
 
     def forward(self, inputs: torch.Tensor, lights: torch.Tensor | None = None,
                 fov: float = constants.DEFAULT_FOV_DEG) -> DeepBasisOutput:
@@ -511,8 +518,13 @@ class DeepBasisNet(nn.Module):
         deviations = torch.tanh(self.local_unit(local_inputs, planes=global_bases.reshape(batch, -1)))
         deviations = deviations.view(batch, n, constants.BASIS_CHANNELS, height, width)
         if hasattr(self, "normal_unit"):
+            diffuse = None
+            if config.normal_unit_albedo:  # the unit leaves the diffuse as it is: blend it first
+                with torch.no_grad():
+                    diffuse = DeepBasisOutput.from_bases(weights, global_bases, deviations,
+                                                         keep_bases=False).maps[:, constants.DIFFUSE].float()
             relief = relief_inputs(photo.float(), lights.view(batch, 3).float(), fov, config.convention,
-                                   config.plane_extent).to(inputs.dtype)
+                                   config.plane_extent, diffuse=diffuse).to(inputs.dtype)
             slope = torch.tanh(self.normal_unit(relief))  # (B, 2, H, W): the x and y of the normal
             shared = torch.cat([slope, slope.new_zeros(batch, constants.BASIS_CHANNELS - 2, height, width)], dim=1)
             deviations = deviations + shared[:, None]
