@@ -159,6 +159,19 @@ else:
     from . import bsdf  # noqa: E402, F401  (registers the plugin once the variant is set)
 
 
+def _flash_settings(fov, convention, intensity, backend) -> tuple[str, float, str]:
+    """The convention, intensity and backend of a flash render call, defaults filled in and the backend checked."""
+    from .. import constants, geometry
+
+    convention = convention or constants.DEFAULT_CONVENTION
+    backend = backend or _default_backend
+    if intensity is None:
+        intensity = geometry.flash_intensity(fov or constants.DEFAULT_FOV_DEG, convention)
+    if backend not in RENDER_BACKENDS:
+        raise ValueError(f"unknown render backend {backend!r}; expected one of {list(RENDER_BACKENDS)}")
+    return convention, intensity, backend
+
+
 def render_flash(maps, lights, *, fov: float | None = None, convention: str | None = None,
                  intensity: float | None = None, backend: str | None = None, views=None, extent: float = 1.0):
     """The flash renderer every part of the pipeline calls: per pixel, batched, differentiable.
@@ -180,15 +193,9 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
     Returns:
         linear radiance, (B, K, 3, H, W).
     """
-    from .. import constants, geometry
     from . import reference
 
-    convention = convention or constants.DEFAULT_CONVENTION
-    backend = backend or _default_backend
-    if intensity is None:
-        intensity = geometry.flash_intensity(fov or constants.DEFAULT_FOV_DEG, convention)
-    if backend not in RENDER_BACKENDS:
-        raise ValueError(f"unknown render backend {backend!r}; expected one of {list(RENDER_BACKENDS)}")
+    convention, intensity, backend = _flash_settings(fov, convention, intensity, backend)
     if backend == "torch":
         return reference.render_flash(maps, lights, intensity, convention, views=views, extent=extent)
     _require_mitsuba()
@@ -211,15 +218,9 @@ def flash_l1(maps, photo, lights, *, fov: float | None = None, convention: str |
     Returns:
         (K,).
     """
-    from .. import constants, geometry
     from . import reference
 
-    convention = convention or constants.DEFAULT_CONVENTION
-    backend = backend or _default_backend
-    if intensity is None:
-        intensity = geometry.flash_intensity(fov or constants.DEFAULT_FOV_DEG, convention)
-    if backend not in RENDER_BACKENDS:
-        raise ValueError(f"unknown render backend {backend!r}; expected one of {list(RENDER_BACKENDS)}")
+    convention, intensity, backend = _flash_settings(fov, convention, intensity, backend)
     if backend == "torch":
         import torch
 
