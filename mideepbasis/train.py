@@ -668,9 +668,8 @@ class Trainer:
         if "normal_unit." not in fresh and intro in state and state[intro].shape != target[intro].shape:
             if before.normal_unit_albedo or not after.normal_unit_albedo:
                 raise InputError(f"{path}: its normal unit reads the albedo shading and this run's does not")
-            # The albedo shading enters with zero weights: the unit computes what it did until trained.
-            state[intro] = torch.cat([state[intro], state[intro].new_zeros(state[intro].shape[0], 1,
-                                                                            *state[intro].shape[2:])], dim=1)
+            # The albedo shading, the last input, enters with zero weights: the unit computes what it did.
+            state[intro] = widen_inputs({intro: state[intro]}, target, relief_channels(False))[intro]
         if source.config.extra_inputs != config.extra_inputs:
             state = widen_inputs(state, target, source.config.input_channels)
         self.model.load_state_dict(state)
@@ -802,8 +801,9 @@ class Trainer:
 
         @torch.no_grad()
         def diffuse_of(inputs: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:
-            # The unit changes only the normal: the diffuse is the frozen rest's, whatever the unit is.
-            output = model(inputs.to(self.device), lights.to(self.device), fov=self.config.synthesis.fov)
+            # The unit changes only the normal: the diffuse is the frozen rest's, without a pass of the unit.
+            output = model(inputs.to(self.device), lights.to(self.device), fov=self.config.synthesis.fov,
+                           with_normal_unit=False)
             return output.maps[:, constants.DIFFUSE].float().cpu()
 
         pool = NormalUnitPool(self.materials(), self.config, self.step, diffuse_of)

@@ -477,8 +477,10 @@ class DeepBasisNet(nn.Module):
                                            config.normal_unit_middle_blocks, config.normal_unit_albedo)
 
     def forward(self, inputs: torch.Tensor, lights: torch.Tensor | None = None,
-                fov: float = constants.DEFAULT_FOV_DEG) -> DeepBasisOutput:
-        """Predict the material seen in ``inputs`` (B, 9, H, W) taken under flashes at ``lights`` (B, 3)."""
+                fov: float = constants.DEFAULT_FOV_DEG, with_normal_unit: bool = True) -> DeepBasisOutput:
+        """Predict the material seen in ``inputs`` (B, 9, H, W) taken under flashes at ``lights`` (B, 3).
+        ``with_normal_unit`` False leaves the normal unit out (its slope, the normal's only change, is
+        not added): everything but the normal is the same, for less work."""
         config = self.config
         height, width = inputs.shape[-2:]
         if height % config.stride or width % config.stride:
@@ -517,7 +519,7 @@ class DeepBasisNet(nn.Module):
         local_inputs = torch.cat([inputs, error, weights], dim=1)
         deviations = torch.tanh(self.local_unit(local_inputs, planes=global_bases.reshape(batch, -1)))
         deviations = deviations.view(batch, n, constants.BASIS_CHANNELS, height, width)
-        if hasattr(self, "normal_unit"):
+        if with_normal_unit and hasattr(self, "normal_unit"):
             diffuse = None
             if config.normal_unit_albedo:  # the unit leaves the diffuse as it is: blend it first
                 with torch.no_grad():

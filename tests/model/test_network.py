@@ -131,5 +131,9 @@ def test_the_normal_unit_adds_its_slope_to_the_normal_deviation_of_every_basis()
     torch.testing.assert_close(added[:, :, :2], slope[:, None].expand(-1, added.shape[1], -1, -1, -1))
     assert torch.equal(added[:, :, 2:], torch.zeros_like(added[:, :, 2:]))
     assert torch.equal(a.weights, b.weights) and torch.equal(a.global_bases, b.global_bases)
+    # Left out, the unit adds nothing: the network without one.
+    with torch.no_grad():
+        c = with_unit(inputs, lights, with_normal_unit=False)
+    assert torch.equal(c.deviations, a.deviations) and torch.equal(c.maps, a.maps)
     with pytest.raises(ValueError, match="needs use_bases and use_local"):
         preset("tiny", normal_unit_width=4, use_local=False)
