@@ -8,6 +8,8 @@ import os
 import platform
 from pathlib import Path
 
+import numpy as np
+
 #: Folder of the JSON results (and figures) of the benchmarks.
 RESULTS = Path(__file__).parent / "results"
 
@@ -48,3 +50,28 @@ def save_figure(figure, path: Path, dpi: int = 90) -> Path:
     plt.close(figure)
     temporary.replace(path)
     return path
+
+
+def slope_correlation(normal: np.ndarray, luminance: np.ndarray) -> float:
+    """Correlation of the log luminance's gradient with the relief's (the height's gradient from the
+    normals, -n_x / n_z along columns, n_y / n_z along rows), both directions pooled: what a normal
+    predictor reading the colours sees at the scale of pixels (positive: darker where the surface
+    falls, darker is deeper). The height's correlation is dominated by broad relief instead."""
+    z = np.clip(normal[2], 0.05, None)
+    relief = np.stack([-normal[0] / z, normal[1] / z])[:, 2:-2, 2:-2]
+    log_luminance = np.log(luminance + 1e-3)
+    colour = np.stack([np.gradient(log_luminance, axis=1), np.gradient(log_luminance, axis=0)])[:, 2:-2, 2:-2]
+    relief = relief - relief.mean(axis=(1, 2), keepdims=True)
+    colour = colour - colour.mean(axis=(1, 2), keepdims=True)
+    norm = np.sqrt((relief**2).sum() * (colour**2).sum())
+    return float((relief * colour).sum() / norm) if norm > 1e-12 else 0.0
+
+
+def run_generator_settings(path: Path) -> dict:
+    """The procedural generator's settings of a training run (its config.json), as GeneratorConfig
+    arguments."""
+    try:
+        procedural = json.loads(path.read_text())["procedural"]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise SystemExit(f"{path}: not a training run's config.json with procedural settings ({error})")
+    return {key: tuple(value) if isinstance(value, list) else value for key, value in procedural.items()}

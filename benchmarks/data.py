@@ -1,6 +1,7 @@
 """Training data: generator speed, synthesis throughput, and coverage against the shared test set.
 
     .venv/bin/python benchmarks/data.py [--coverage-count 2000] [-o benchmarks/results/data.json]
+    .venv/bin/python benchmarks/data.py --coverage-only --run-config runs/RUN/config.json -o OUT.json
 
 Measures:
 - generator speed at 256x256 on one core (torch and OpenCV limited to one thread) [materials/s],
@@ -12,7 +13,9 @@ Measures:
 - coverage: histograms of each map's per-material mean and spread, and of normal tilt, for
   procedural materials beside the 84 shared test materials (../shared/data, skipped if absent),
   written to benchmarks/results/coverage.png. Values are compared as the renderer uses them
-  (linear; the test maps are used as stored, like the reference implementations do).
+  (linear; the test maps are used as stored, like the reference implementations do). With
+  ``--run-config``, the procedural materials are drawn as that training run drew them (its
+  undulation, low relief and inversion), the figure written beside OUT.json.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from pathlib import Path
 import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 import numpy as np
 import torch
-from common import RESULTS, SHARED_TEST, save_figure, write_report
+from common import RESULTS, SHARED_TEST, run_generator_settings, save_figure, slope_correlation, write_report
 
 from mideepbasis import constants
 
@@ -110,8 +113,9 @@ def height_from_normals(normal: np.ndarray) -> np.ndarray:
 
 def _statistics(maps: np.ndarray) -> np.ndarray:
     """Per-material statistics: means and spreads of diffuse, roughness, specular, tilt [deg], the
-    specular's colour (mean max - min over RGB), and the correlation of the diffuse luminance with
-    the height integrated from the normals (positive: brighter is higher, darker is deeper)."""
+    specular's colour (mean max - min over RGB), the correlation of the diffuse luminance with
+    the height integrated from the normals (positive: brighter is higher, darker is deeper), and
+    of their gradients (``slope_correlation``)."""
     normal, diffuse = maps[constants.NORMAL], maps[constants.DIFFUSE].mean(0)
     roughness, specular = maps[constants.ROUGHNESS][0], maps[constants.SPECULAR].mean(0)
     tilt = np.degrees(np.arccos(np.clip(normal[2], -1, 1)))
@@ -122,7 +126,8 @@ def _statistics(maps: np.ndarray) -> np.ndarray:
     else:
         correlation = float(np.corrcoef(diffuse.ravel(), height.ravel())[0, 1])
     return np.array([diffuse.mean(), diffuse.std(), roughness.mean(), roughness.std(), specular.mean(),
-                     specular.std(), tilt.mean(), np.percentile(tilt, 90), chroma, correlation], np.float32)
+                     specular.std(), tilt.mean(), np.percentile(tilt, 90), chroma, correlation,
+                     slope_correlation(normal, diffuse)], np.float32)
 
 
 def kinds(statistics: np.ndarray) -> dict:
@@ -135,23 +140,28 @@ def kinds(statistics: np.ndarray) -> dict:
                 round(float(((roughness < 0.25) & (specular < 0.1)).mean()), 3),
             "albedo follows relief (|corr(luminance, height)| > 0.3)": round(float((np.abs(correlation) > 0.3).mean()), 3),
             "darker is deeper (corr > 0.3)": round(float((correlation > 0.3).mean()), 3),
-            "albedo independent of relief (|corr| < 0.1)": round(float((np.abs(correlation) < 0.1).mean()), 3)}
+            "albedo independent of relief (|corr| < 0.1)": round(float((np.abs(correlation) < 0.1).mean()), 3),
+            "darker is deeper, pixel scale (slope corr > 0.2)": round(float((statistics[:, 10] > 0.2).mean()), 3),
+            "brighter is deeper, pixel scale (slope corr < -0.2)": round(float((statistics[:, 10] < -0.2).mean()), 3)}
 
 
-def _procedural_statistics(seed: int, legacy_relief: bool = False) -> np.ndarray:
+def _procedural_statistics(seed: int, legacy_relief: bool = False, settings: dict | None = None) -> np.ndarray:
     from mideepbasis.data.procedural import GeneratorConfig, generate
 
     one_core()
-    config = GeneratorConfig(size=128, relief_tilt_deg=None) if legacy_relief else GeneratorConfig(size=128)
+    if settings is not None:
+        config = GeneratorConfig(**{**settings, "size": 128})
+    else:
+        config = GeneratorConfig(size=128, relief_tilt_deg=None) if legacy_relief else GeneratorConfig(size=128)
     return _statistics(generate(seed, config=config).to_tensor().numpy())
 
 
 STAT_NAMES = ["diffuse mean", "diffuse spread", "roughness mean", "roughness spread", "specular mean",
               "specular spread", "normal tilt mean [deg]", "normal tilt 90th percentile [deg]", "specular colour",
-              "corr(luminance, height)"]
+              "corr(luminance, height)", "corr(luminance slope, height slope)"]
 
 
-def coverage(count: int, output: Path, legacy_relief: bool = False) -> dict:
+def coverage(count: int, output: Path, legacy_relief: bool = False, settings: dict | None = None) -> dict:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,12 +171,12 @@ def coverage(count: int, output: Path, legacy_relief: bool = False) -> dict:
 
     with multiprocessing.get_context("spawn").Pool(os.cpu_count() or 1) as pool:
         procedural = np.stack(pool.starmap(_procedural_statistics,
-                                           [(seed, legacy_relief) for seed in range(100_000, 100_000 + count)],
+                                           [(seed, legacy_relief, settings) for seed in range(100_000, 100_000 + count)],
                                            chunksize=16))
     test = None
     if SHARED_TEST.is_dir():
         test = np.stack([_statistics(m.to_tensor().numpy()) for m in DeschaintreDataset(SHARED_TEST)])
-    figure, axes = plt.subplots(2, 5, figsize=(20, 7))
+    figure, axes = plt.subplots(2, 6, figsize=(24, 7))
     for index, (axis, name) in enumerate(zip(axes.ravel(), STAT_NAMES)):
         values = [procedural[:, index]] + ([test[:, index]] if test is not None else [])
         bins = np.linspace(min(v.min() for v in values), max(v.max() for v in values) + 1e-6, 40)
@@ -175,6 +185,8 @@ def coverage(count: int, output: Path, legacy_relief: bool = False) -> dict:
             axis.hist(test[:, index], bins=bins, density=True, alpha=0.6, label=f"shared test ({len(test)})")
         axis.set_title(name)
         axis.legend(fontsize=7)
+    for axis in axes.ravel()[len(STAT_NAMES):]:
+        axis.axis("off")
     figure.suptitle("Coverage of the procedural generator: per-material statistics of the maps (as the renderer uses them)")
     figure.tight_layout()
     save_figure(figure, output)
@@ -184,6 +196,7 @@ def coverage(count: int, output: Path, legacy_relief: bool = False) -> dict:
                 for i, name in enumerate(STAT_NAMES)}
 
     result = {"figure": str(output), "procedural_count": count, "legacy_relief": legacy_relief,
+              "generator_settings": settings,
               "procedural_percentiles_5_50_95": summary(procedural), "procedural_kinds": kinds(procedural)}
     if test is not None:
         result["test_count"] = len(test)
@@ -203,13 +216,17 @@ def main() -> None:
     parser.add_argument("--coverage-only", action="store_true", help="skip the speed measurements")
     parser.add_argument("--legacy-relief", action="store_true",
                         help="coverage of the generator before relief scaling (bump_scale factor), for comparison")
+    parser.add_argument("--run-config", type=Path,
+                        help="coverage of the generator as a training run drew it (the run's config.json)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "data.json")
     args = parser.parse_args()
+    settings = run_generator_settings(args.run_config) if args.run_config else None
 
     report = {"targets": TARGETS}
     if args.coverage_only:
-        figure = RESULTS / ("coverage_legacy_relief.png" if args.legacy_relief else "coverage.png")
-        report["coverage"] = coverage(args.coverage_count, figure, args.legacy_relief)
+        figure = args.output.with_suffix(".png") if args.run_config else \
+            RESULTS / ("coverage_legacy_relief.png" if args.legacy_relief else "coverage.png")
+        report["coverage"] = coverage(args.coverage_count, figure, args.legacy_relief, settings)
         print("coverage:", json.dumps(report["coverage"], indent=1))
         write_report(args.output, "data", report)
         return

@@ -17,6 +17,16 @@ light known, the network at its training resolution; only measured, never traine
 input (test-time augmentation; a moved photo under the moved flash is the photo moved), each
 output moved back.
 
+The shared set is also split by how its colours follow its relief (``slope_correlation``: the
+log luminance's gradient against the height's): darker is deeper (above 0.2), brighter is deeper
+(below -0.2), neither; for each group, the model's normal RMSE beside the flat normal's.
+
+``--relief-cue N [--run-config runs/RUN/config.json]``: how much the model reads relief from the
+colours: its normal RMSE on N training materials (held-out seeds 3e9 on, the run's generator or
+the default one) as drawn, and the same materials with their relief inverted under the same
+colours (``relief_inversion_probability`` 1), beside the flat normal. A model that reads the
+shading scores the two alike; one that learned "darker is deeper" loses on the inverted ones.
+
 ``--procedural N``: the same bands of the true normals of N training materials (seeds 5000 on,
 128 px, shown at 256 px), with the generator's defaults or its ``coarse_relief_tilt_deg``, beside
 the shared set's; no model. Writes benchmarks/results/normal_bands.json (or
@@ -33,7 +43,7 @@ from pathlib import Path
 import mideepbasis  # noqa: F401
 import torch
 import torch.nn.functional as F
-from common import RESULTS, SHARED_TEST, write_report
+from common import RESULTS, SHARED_TEST, run_generator_settings, slope_correlation, write_report
 
 from mideepbasis import constants
 from mideepbasis.capture import CaptureConfig, Capturer, Photo
@@ -83,6 +93,48 @@ def procedural_bands(args) -> None:
     write_report(args.output.with_name(args.output.stem + "_procedural.json"), "normal_bands", report)
 
 
+def relief_cue(args) -> None:
+    """The model's normal RMSE on training materials as drawn and with their relief inverted."""
+    import dataclasses
+
+    from mideepbasis.data.procedural import GeneratorConfig, generate
+    from mideepbasis.data.synth import SynthesisConfig, synthesize
+
+    settings = run_generator_settings(args.run_config) if args.run_config else {}
+    config = GeneratorConfig(**{**settings, "size": 128})
+    model = load_model(args.model)
+    model.eval()
+    synthesis = SynthesisConfig(convention=model.config.convention)
+    report = {"model": args.model or "shipped", "materials": args.relief_cue,
+              "run_config": str(args.run_config) if args.run_config else None, "normal_rmse": {}}
+    for name, chance in (("as drawn", 0.0), ("relief inverted", 1.0)):
+        drawn = dataclasses.replace(config, relief_inversion_probability=chance)
+        maps = torch.stack([generate(3 * 10**9 + i, config=drawn).to_tensor() for i in range(args.relief_cue)])
+        batch = synthesize(maps, torch.Generator().manual_seed(778), synthesis)
+        with torch.no_grad():
+            predicted = torch.cat([model(batch.inputs[start:start + 8], batch.lights[start:start + 8],
+                                         fov=synthesis.fov).maps[:, constants.NORMAL].float()
+                                   for start in range(0, len(maps), 8)])
+        truth = maps[:, constants.NORMAL]
+        flat = torch.zeros_like(truth)
+        flat[:, 2] = 1.0
+        report["normal_rmse"][name] = {"model": stored_rmse(predicted, truth), "flat": stored_rmse(flat, truth)}
+        print(f"{name:>16}: model {report['normal_rmse'][name]['model']:.4f}, flat {report['normal_rmse'][name]['flat']:.4f}")
+    write_report(args.output.with_name(args.output.stem + "_relief_cue.json"), "normal_bands", report)
+
+
+def by_colour_cue(predicted: torch.Tensor, truth: torch.Tensor, diffuse: torch.Tensor) -> dict:
+    """Normal RMSE of the model and of the flat normal on the materials grouped by ``slope_correlation``."""
+    flat = torch.zeros_like(truth)
+    flat[:, 2] = 1.0
+    cue = torch.tensor([slope_correlation(n.numpy(), d.mean(0).numpy()) for n, d in zip(truth, diffuse)])
+    groups = {"darker is deeper (> 0.2)": cue > 0.2, "neither": cue.abs() <= 0.2,
+              "brighter is deeper (< -0.2)": cue < -0.2}
+    return {name: {"materials": int(chosen.sum()), "model": stored_rmse(predicted[chosen], truth[chosen]),
+                   "flat": stored_rmse(flat[chosen], truth[chosen])}
+            for name, chosen in groups.items() if chosen.any()}
+
+
 class DihedralAverage(torch.nn.Module):
     """A normal unit run on ``moves`` mirrored and turned copies of its relief inputs, its outputs
     moved back and averaged (test-time augmentation; ``--symmetrise``): moves 1 is the unit itself."""
@@ -111,6 +163,10 @@ def main() -> None:
                         help="the generator's coarse_relief_tilt_deg for --procedural")
     parser.add_argument("--coarse-relief-probability", type=float, default=0.7,
                         help="the generator's coarse_relief_probability for --procedural")
+    parser.add_argument("--relief-cue", type=int, default=0,
+                        help="only the model on this many training materials, as drawn and with their relief inverted")
+    parser.add_argument("--run-config", type=Path, default=None,
+                        help="draw the --relief-cue materials as this training run did (its config.json)")
     parser.add_argument("--symmetrise", type=int, default=1, choices=range(1, 9),
                         help="average the normal unit over this many mirrored and turned copies of its input")
     args = parser.parse_args()
@@ -118,6 +174,9 @@ def main() -> None:
         raise SystemExit(f"{SHARED_TEST} is absent")
     if args.procedural:
         procedural_bands(args)
+        return
+    if args.relief_cue:
+        relief_cue(args)
         return
 
     materials = load_evaluation_materials(SHARED_TEST, "deschaintre5")
@@ -151,12 +210,15 @@ def main() -> None:
         correlation = float((predicted_band * true_band).sum() / (predicted_band.norm() * true_band.norm()))
         report["bands"][name] = {"truth_rms": rms(true_band), "model_rms": rms(predicted_band),
                                  "error_rms": rms(predicted_band - true_band), "correlation": correlation}
+    report["by_colour_cue"] = by_colour_cue(predicted, truth, materials.stored[:, constants.DIFFUSE])
     for name, value in floors.items():
         print(f"{name}: {value:.4f}")
     print(f"model: {report['model_rmse']:.4f} (prediction {1000 * report['prediction_seconds_median']:.0f} ms, median)")
     for name, row in report["bands"].items():
         print(f"{name:>6}: truth {row['truth_rms']:.4f}, model {row['model_rms']:.4f}, error {row['error_rms']:.4f}, "
               f"correlation {row['correlation']:.3f}")
+    for name, row in report["by_colour_cue"].items():
+        print(f"{name}: {row['materials']} materials, model {row['model']:.4f}, flat {row['flat']:.4f}")
     write_report(args.output, "normal_bands", report)
 
 

@@ -159,3 +159,29 @@ def test_coarse_relief_adds_broad_bumps_and_keeps_the_rest_of_the_material():
         assert tilt[1] > tilt[0], seed
     never = GeneratorConfig(size=64, coarse_relief_tilt_deg=(20.0, 20.0), coarse_relief_probability=0.0)
     assert torch.equal(generate(1, config=never).normal, generate(1, config=plain_config).normal)
+
+
+def test_relief_inversion_turns_the_relief_inside_out_under_the_same_colours():
+    plain_config = GeneratorConfig(size=64)
+    inverted_config = GeneratorConfig(size=64, relief_inversion_probability=1.0)
+    for seed in range(3):
+        plain, inverted = generate(seed, config=plain_config), generate(seed, config=inverted_config)
+        assert torch.equal(plain.diffuse, inverted.diffuse) and torch.equal(plain.specular, inverted.specular)
+        assert torch.equal(plain.roughness, inverted.roughness)
+        assert inverted.provenance["relief_inverted"] and "relief_inverted" not in plain.provenance
+        # The negated height field leans every normal the other way: x and y change sign, z stays.
+        torch.testing.assert_close(inverted.normal[:2], -plain.normal[:2], atol=1e-6, rtol=0)
+        torch.testing.assert_close(inverted.normal[2], plain.normal[2], atol=1e-6, rtol=0)
+
+
+def test_low_relief_scales_the_relief_down_to_the_drawn_tilt():
+    low_config = GeneratorConfig(size=64, coarse_relief_tilt_deg=(20.0, 20.0), coarse_relief_probability=1.0,
+                                 low_relief_probability=1.0, low_relief_tilt_deg=(1.0, 1.0))
+    for seed in range(3):
+        low = generate(seed, config=low_config)
+        assert low.provenance["low_relief_tilt_deg"] == pytest.approx(1.0)
+        tilt = torch.rad2deg(torch.acos(low.normal[2].clamp(-1, 1))).mean()
+        assert float(tilt) == pytest.approx(1.0, rel=0.05), seed
+    # At chance 0 nothing changes: the materials of earlier runs stay as they were.
+    never = GeneratorConfig(size=64, low_relief_probability=0.0, relief_inversion_probability=0.0)
+    assert torch.equal(generate(1, config=never).normal, generate(1, config=GeneratorConfig(size=64)).normal)
