@@ -182,6 +182,12 @@ class TrainConfig:
     normal_crop: int = field(default=64, metadata={"parse": positive_int})
     """Side of the normal pool's training crops [pixels]."""
 
+    normal_pool_loss: str = field(default="mse", metadata={"choices": ("mse", "crop_rmse")})
+    """Loss of the normal pool (``normal_unit_loss``): ``mse``, the mean squared error over the
+    batch; ``crop_rmse``, the mean over crops of each crop's RMSE, as ``evaluate`` averages the
+    per-material RMSE: a nearly flat crop weighs as much as a deep one, where the squared error lets
+    the deep ones decide."""
+
     def __post_init__(self):
         # Resolve the network and the synthesis now, so that what is stored is what ran.
         if self.network is None or isinstance(self.network, dict):
@@ -402,6 +408,18 @@ def normals_over_flat(raw_slope: torch.Tensor) -> torch.Tensor:
     a flat material: unit-normal(tanh(slope), 1), as ``DeepBasisNet`` adds it to the bases."""
     slope = torch.tanh(raw_slope)
     return torch.nn.functional.normalize(torch.cat([slope, torch.ones_like(slope[:, :1])], dim=1), dim=1)
+
+
+def normal_unit_loss(normals: torch.Tensor, truth: torch.Tensor, kind: str = "mse") -> torch.Tensor:
+    """The normal pool's loss (``TrainConfig.normal_pool_loss``) of unit normals (B, 3, H, W)
+    against the true ones: ``mse`` over everything, or ``crop_rmse``, the mean of the crops' RMSE."""
+    squared = (normals - truth) ** 2
+    if kind == "mse":
+        return squared.mean()
+    if kind == "crop_rmse":
+        # The small floor keeps the gradient of a crop predicted exactly finite.
+        return (squared.mean(dim=(1, 2, 3)) + 1e-8).sqrt().mean()
+    raise ValueError(f"unknown normal pool loss {kind!r}")
 
 
 class StepBatchSampler(Sampler):
@@ -788,7 +806,7 @@ class Trainer:
         unit = getattr(self.model, "module", self.model).normal_unit
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
             raw = unit(relief)
-        loss = ((normals_over_flat(raw.float()) - truth) ** 2).mean()
+        loss = normal_unit_loss(normals_over_flat(raw.float()), truth, self.config.normal_pool_loss)
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": loss.item(), "l_vc": 0.0, "l_saturation": 0.0, "grad_norm": norm.item()}
 

@@ -521,3 +521,20 @@ def test_training_materials_follow_the_runs_procedural_settings(tmp_path):
     assert TrainConfig.from_dict(stored) == config
     del stored["procedural"]
     assert TrainConfig.from_dict(stored).procedural == GeneratorConfig(size=32)
+
+
+def test_the_crop_rmse_loss_is_the_mean_of_the_crops_rmse():
+    from mideepbasis.train import normal_unit_loss
+
+    truth = torch.nn.functional.normalize(torch.randn(3, 3, 8, 8) * 0.1 + torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1), dim=1)
+    predicted = truth.clone()
+    predicted[0] = torch.nn.functional.normalize(truth[0] + 0.3, dim=0)  # one crop wrong, two exact
+    per_crop = [float(((predicted[i] - truth[i]) ** 2).mean().sqrt()) for i in range(3)]
+    # Within the floor under the root: 1e-4 for an exact crop.
+    assert float(normal_unit_loss(predicted, truth, "crop_rmse")) == pytest.approx(sum(per_crop) / 3, abs=1e-4)
+    assert per_crop[0] > 0.05
+    assert float(normal_unit_loss(predicted, truth, "mse")) == pytest.approx(float(((predicted - truth) ** 2).mean()))
+    # An exact crop still gives finite gradients to the others.
+    predicted.requires_grad_(True)
+    normal_unit_loss(predicted, truth, "crop_rmse").backward()
+    assert torch.isfinite(predicted.grad).all() and predicted.grad[0].abs().sum() > 0
