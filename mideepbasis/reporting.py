@@ -146,13 +146,26 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
     figure took 2.8 s of a 4-s save (issue 14)."""
     from PIL import Image, ImageDraw, ImageFont
 
-    def srgb(image):
-        return linear_to_srgb(image.detach().cpu().permute(1, 2, 0).numpy().clip(0, 1))
+    from .capture.search import downsample, downsample_maps
 
-    tiles = map_tiles(result.material.to_tensor())
+    # The panels are REPORT_TILE pixels wide: larger images are area-averaged (in linear light) to
+    # twice that before their sRGB encoding, which took 1.4 s of a 2048 px capture's report.
+    panel_limit = 2 * REPORT_TILE
+
+    def small(image: torch.Tensor) -> torch.Tensor:
+        image = image.detach().cpu()
+        return downsample(image, panel_limit) if image.shape[-1] > panel_limit else image
+
+    def srgb(image):
+        return linear_to_srgb(small(image).permute(1, 2, 0).numpy().clip(0, 1))
+
+    maps = result.material.to_tensor()
+    if maps.shape[-1] > panel_limit:
+        maps = downsample_maps(maps[None], panel_limit)[0]
+    tiles = map_tiles(maps)
     panels = [("photo", srgb(result.photo)), ("normal", tiles[0]), ("diffuse", tiles[1]), ("roughness", tiles[2]),
               ("specular", tiles[3]), ("re-rendering", srgb(rerender)),
-              ("|error| x 4", np.clip(error.detach().cpu().permute(1, 2, 0).numpy() * 4, 0, 1)),
+              ("|error| x 4", np.clip(small(error).permute(1, 2, 0).numpy() * 4, 0, 1)),
               ("environment (studio)", linear_to_srgb(environment.clip(0, 1)))]
     size, band, columns = REPORT_TILE, REPORT_TITLE, 6
     sheet = Image.new("RGB", (columns * size, 2 * (size + band)), (255, 255, 255))

@@ -445,3 +445,30 @@ def test_a_batch_refuses_clashing_names_and_a_model_that_does_not_load_before_an
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and "missing.safetensors: no such checkpoint file" in error[0]
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_the_report_of_a_large_capture_shows_its_images_averaged_to_the_panel(tmp_path):
+    from mideepbasis.capture import CaptureResult
+    from mideepbasis.reporting import REPORT_TILE, REPORT_TITLE, capture_report
+
+    size = 4 * REPORT_TILE  # beyond the panels' limit of twice their size: averaged first
+    rows = torch.linspace(0, 1, size).view(1, size, 1)
+    photo = torch.cat([rows.expand(1, size, size), (1 - rows).expand(1, size, size),
+                       (torch.arange(size) % 2).float().view(1, 1, size).expand(1, size, size)])  # stripes of 1 px
+    maps = F.interpolate(material(5, size=64), size=(size, size), mode="nearest")[0]
+    result = CaptureResult(material=Material.from_tensor(maps), photo=photo, offset=(0.0, 0.0), fov=45.0,
+                           fov_source="argument", searched=False)
+    folder = tmp_path / "report"
+    folder.mkdir()
+    for name in ("normal", "diffuse", "roughness", "specular"):
+        write_image(folder / f"{name}.png", np.zeros((8, 8, 3), np.float32))  # the viewer embeds the maps
+    capture_report(result, folder, rerender=photo, error=photo * 0, environment=np.zeros((32, 32, 3), np.float32),
+                   rerender_rmse=0.0)
+    sheet = np.asarray(Image.open(folder / "report.png")).astype(np.float64) / 255
+    panel = sheet[REPORT_TITLE + 4:REPORT_TITLE + REPORT_TILE - 4, 4:REPORT_TILE - 4]
+    # The 1-px stripes average to linear 0.5 (sRGB 0.735), not to a blend of their sRGB values (0.5).
+    blue = panel[8:-8, 8:-8, 2]
+    assert abs(blue.mean() - 0.735) < 0.01 and blue.std() < 0.01
+    # The ramps: linear red at the panel's middle row is about 0.5.
+    middle = panel[panel.shape[0] // 2, 8:-8]
+    assert abs(middle[:, 0].mean() - 0.735) < 0.03 and abs(middle[:, 1].mean() - 0.735) < 0.03
