@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from . import constants
 from .configs import differences, positive_int
 from .data.procedural import GeneratorConfig
-from .data.synth import SynthesisConfig, Variation, synthesize
+from .data.synth import SynthesisConfig, TrainingBatch, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
 from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, relief_channels, relief_inputs
@@ -182,6 +182,19 @@ class TrainConfig:
     normal_crop: int = field(default=64, metadata={"parse": positive_int})
     """Side of the normal pool's training crops [pixels]."""
 
+    local_pool: int = 0
+    """0: off. N > 0: the local unit alone learns (``--train-only local_unit``) on a pool of N
+    photographed training materials (``LocalUnitPool``), of which ``local_pool_refresh`` are
+    replaced each step. Each is stored with what the frozen rest of the network gives the local
+    unit (its inputs: the photo, the error map of the global bases, the weights; the global bases)
+    and the normal unit's slope, so a step runs the local unit alone. The loss is the whole
+    network's (``normal_weight``, ``render_weight``), without the variation pair; a normal unit
+    that reads the albedo shading keeps the slope it had with the starting local unit. Validation
+    runs the whole network. One process only."""
+
+    local_pool_refresh: int = field(default=1, metadata={"parse": positive_int})
+    """Materials of the local pool replaced by new ones each step."""
+
     normal_pool_loss: str = field(default="mse", metadata={"choices": ("mse", "crop_rmse")})
     """Loss of the normal pool (``normal_unit_loss``): ``mse``, the mean squared error over the
     batch; ``crop_rmse``, the mean over crops of each crop's RMSE, as ``evaluate`` averages the
@@ -210,6 +223,8 @@ class TrainConfig:
             raise ValueError(f"unknown network parts {unknown} to train; expected some of {list(TRAINABLE_PARTS)}")
         if self.normal_pool < 0:
             raise ValueError(f"normal_pool {self.normal_pool} must be 0 (off) or a number of materials")
+        if self.normal_pool and self.local_pool:
+            raise ValueError("local_pool and normal_pool train different units: give one of them")
         if self.normal_pool:
             if self.train_only != ("normal_unit",) or not self.network.normal_unit_width:
                 raise ValueError("normal_pool trains the normal unit alone: it needs train_only = normal_unit "
@@ -218,6 +233,14 @@ class TrainConfig:
                 raise ValueError(f"normal_crop {self.normal_crop} must be a multiple of 16 and at most size {self.size}")
             if self.normal_pool_refresh > self.normal_pool:
                 raise ValueError("normal_pool_refresh cannot exceed normal_pool")
+        if self.local_pool < 0:
+            raise ValueError(f"local_pool {self.local_pool} must be 0 (off) or a number of materials")
+        if self.local_pool:
+            if self.train_only != ("local_unit",) or not (self.network.use_bases and self.network.use_local):
+                raise ValueError("local_pool trains the local unit alone: it needs train_only = local_unit "
+                                 "and a network with a local unit")
+            if self.local_pool_refresh > self.local_pool:
+                raise ValueError("local_pool_refresh cannot exceed local_pool")
 
     @classmethod
     def from_dict(cls, values: dict, source: str = "checkpoint", network: dict | None = None) -> TrainConfig:
@@ -348,45 +371,59 @@ def dihedral(image: torch.Tensor, vector_channel: int | None, mirror: bool, turn
     return image
 
 
-class NormalUnitPool:
-    """The training data of the normal unit alone (``TrainConfig.normal_pool``): the relief inputs
-    and true normals of a pool of photographed training materials, renewed a few at a time. A
-    unit that reads the albedo shading (``NetworkConfig.normal_unit_albedo``) gets the diffuse
-    that ``diffuse_of`` (network inputs, lights) predicts: the frozen rest of the network's.
+class PhotographedPool:
+    """A pool of P photographed training materials renewed R at a time (the data of a unit trained
+    alone). Before step s the pool holds materials s*R .. s*R + P - 1 of the training sources,
+    material k in slot k mod P, photographed with a generator of its own: the pool at a step is
+    the same whether the run got there in one go or resumed. Subclasses store what their unit
+    needs (``_store``) and draw batches from it."""
 
-    Before step s the pool holds materials s*R .. s*R + P - 1 of the training sources (P the pool,
-    R the refresh), material k in slot k mod P, photographed with a generator of its own: the
-    pool at a step is the same whether the run got there in one go or resumed.
-    """
-
-    def __init__(self, materials: Dataset, config: TrainConfig, step: int, diffuse_of=None):
-        self.materials, self.config, self.diffuse_of = materials, config, diffuse_of
-        if config.network.normal_unit_albedo and diffuse_of is None:
-            raise ValueError("a unit that reads the albedo shading needs the network's diffuse (diffuse_of)")
-        size = config.size
-        self.relief = torch.empty(config.normal_pool, relief_channels(config.network.normal_unit_albedo), size, size)
-        self.normals = torch.empty(config.normal_pool, 3, size, size)
-        first = step * config.normal_pool_refresh
-        self._photograph(range(first, first + config.normal_pool))
+    def __init__(self, materials: Dataset, config: TrainConfig, step: int, size: int, refresh: int):
+        self.materials, self.config, self.size, self.refresh = materials, config, size, refresh
+        self._photograph(range(step * refresh, step * refresh + size))
         self.step = step
 
     def _photograph(self, numbers) -> None:
         config = self.config
         for number in numbers:
             maps = self.materials[number][None]
-            batch = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + number), config.synthesis)
-            slot = number % config.normal_pool
-            diffuse = self.diffuse_of(batch.inputs, batch.lights) if config.network.normal_unit_albedo else None
-            self.relief[slot] = relief_inputs(decode_photo(batch.inputs), batch.lights, config.synthesis.fov,
-                                              config.network.convention, config.network.plane_extent,
-                                              diffuse=diffuse)[0]
-            self.normals[slot] = maps[0, constants.NORMAL]
+            batch = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + number), config.synthesis,
+                               config.network.extra_inputs)
+            self._store(number % self.size, maps, batch)
+
+    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
+        raise NotImplementedError
 
     def advance(self) -> None:
         """Replace the pool's oldest materials: the pool of the next step."""
-        first = self.step * self.config.normal_pool_refresh + self.config.normal_pool
-        self._photograph(range(first, first + self.config.normal_pool_refresh))
+        first = self.step * self.refresh + self.size
+        self._photograph(range(first, first + self.refresh))
         self.step += 1
+
+
+class NormalUnitPool(PhotographedPool):
+    """The training data of the normal unit alone (``TrainConfig.normal_pool``): the relief inputs
+    and true normals of a pool of photographed training materials (``PhotographedPool``). A
+    unit that reads the albedo shading (``NetworkConfig.normal_unit_albedo``) gets the diffuse
+    that ``diffuse_of`` (network inputs, lights) predicts: the frozen rest of the network's.
+    """
+
+    def __init__(self, materials: Dataset, config: TrainConfig, step: int, diffuse_of=None):
+        if config.network.normal_unit_albedo and diffuse_of is None:
+            raise ValueError("a unit that reads the albedo shading needs the network's diffuse (diffuse_of)")
+        self.diffuse_of = diffuse_of
+        size = config.size
+        self.relief = torch.empty(config.normal_pool, relief_channels(config.network.normal_unit_albedo), size, size)
+        self.normals = torch.empty(config.normal_pool, 3, size, size)
+        super().__init__(materials, config, step, config.normal_pool, config.normal_pool_refresh)
+
+    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
+        config = self.config
+        diffuse = self.diffuse_of(batch.inputs, batch.lights) if config.network.normal_unit_albedo else None
+        self.relief[slot] = relief_inputs(decode_photo(batch.inputs), batch.lights, config.synthesis.fov,
+                                          config.network.convention, config.network.plane_extent,
+                                          diffuse=diffuse)[0]
+        self.normals[slot] = maps[0, constants.NORMAL]
 
     def crops(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """A batch of random crops, each mirrored and turned at random: (relief inputs
@@ -401,6 +438,55 @@ class NormalUnitPool:
             relief.append(dihedral(self.relief[window], RELIEF_DIRECTION_CHANNEL, move >= 4, move % 4))
             normals.append(dihedral(self.normals[window], 0, move >= 4, move % 4))
         return torch.stack(relief), torch.stack(normals)
+
+
+@dataclass
+class LocalUnitBatch:
+    """A batch of the local pool (``LocalUnitPool``)."""
+
+    local_inputs: torch.Tensor
+    """(B, input channels + 3 + N, H, W): what the frozen rest gives the local unit."""
+
+    weights: torch.Tensor
+    """(B, N, H, W) the frozen weights."""
+
+    global_bases: torch.Tensor
+    """(B, N, 10) the frozen global bases (signed space)."""
+
+    slope: torch.Tensor
+    """(B, 2, H, W) the frozen normal unit's slope (zeros without one)."""
+
+    maps: torch.Tensor
+    """(B, 10, H, W) the true maps."""
+
+
+class LocalUnitPool(PhotographedPool):
+    """The training data of the local unit alone (``TrainConfig.local_pool``): for each material of
+    the pool (``PhotographedPool``), what ``stage_of`` (network inputs, lights) gives: the local
+    unit's inputs, the weights, the global bases and the normal unit's slope, from the frozen rest
+    of the network; beside the true maps."""
+
+    def __init__(self, materials: Dataset, config: TrainConfig, step: int, stage_of):
+        self.stage_of = stage_of
+        network, size, count = config.network, config.size, config.local_pool
+        n = network.num_bases
+        self.local_inputs = torch.empty(count, network.input_channels + 3 + n, size, size)
+        self.weights = torch.empty(count, n, size, size)
+        self.global_bases = torch.empty(count, n, constants.BASIS_CHANNELS)
+        self.slope = torch.empty(count, 2, size, size)
+        self.maps = torch.empty(count, 10, size, size)
+        super().__init__(materials, config, step, count, config.local_pool_refresh)
+
+    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
+        local_inputs, weights, global_bases, slope = self.stage_of(batch.inputs, batch.lights)
+        self.local_inputs[slot], self.weights[slot], self.global_bases[slot] = local_inputs[0], weights[0], global_bases[0]
+        self.slope[slot], self.maps[slot] = slope[0], batch.maps[0]
+
+    def batch(self, generator: torch.Generator) -> LocalUnitBatch:
+        """``config.batch`` materials of the pool, drawn at random."""
+        slots = torch.randint(0, self.size, (self.config.batch,), generator=generator)
+        return LocalUnitBatch(self.local_inputs[slots], self.weights[slots], self.global_bases[slots],
+                              self.slope[slots], self.maps[slots])
 
 
 def normals_over_flat(raw_slope: torch.Tensor) -> torch.Tensor:
@@ -751,10 +837,12 @@ class Trainer:
         for group in self.optimizer.param_groups:
             group["lr"] = group["initial_lr"] * factor
 
-    def train_step(self, maps: torch.Tensor) -> dict:
+    def train_step(self, maps) -> dict:
         config = self.config
         if config.normal_pool:
             return self._normal_unit_step(maps)
+        if config.local_pool:
+            return self._local_unit_step(maps)
         maps = maps.to(self.device, non_blocking=True)
         batch = synthesize(maps, self.generator, self.synthesis, self._extra_inputs())
         use_vc = config.vc_weight > 0
@@ -810,12 +898,54 @@ class Trainer:
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": loss.item(), "l_vc": 0.0, "l_saturation": 0.0, "grad_norm": norm.item()}
 
+    def _local_unit_step(self, batch: LocalUnitBatch) -> dict:
+        """One step of the local unit alone (``TrainConfig.local_pool``) on a batch of the pool."""
+        config, model = self.config, getattr(self.model, "module", self.model)
+        weights, global_bases, maps = (t.to(self.device) for t in (batch.weights, batch.global_bases, batch.maps))
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=config.bf16):
+            deviations = model.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
+        slope = batch.slope.to(self.device)
+        shared = torch.cat([slope, slope.new_zeros(slope.shape[0], constants.BASIS_CHANNELS - 2, *slope.shape[-2:])], 1)
+        output = DeepBasisOutput.from_bases(weights, global_bases, deviations.float() + shared[:, None], keep_bases=False)
+        sup = supervised_loss(output, maps, config.normal_weight)
+        loss, losses = sup, {}
+        if config.render_weight > 0:
+            render_lights, render_views = sample_render_geometry(maps.shape[0], config.render_lights, self.generator)
+            rendering = rendering_loss(output.maps, maps, render_lights.to(self.device), render_views.to(self.device),
+                                       self.synthesis.convention)
+            loss = loss + config.render_weight * rendering
+            losses["l_render"] = rendering.item()
+        norm = self._optimise(loss)  # the frozen rest has no gradient
+        return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": 0.0, "l_saturation": 0.0, **losses,
+                "grad_norm": norm.item()}
+
     # --- the loop ----------------------------------------------------------------------------------
 
     def pool_crops(self):
-        """Batches of the normal pool (``TrainConfig.normal_pool``) from this step on: crops, then
-        the pool moves on."""
+        """Batches of the unit trained alone from this step on (``TrainConfig.normal_pool``: crops
+        of the normal pool; ``local_pool``: materials of the local pool), then the pool moves on."""
+        pool = self.unit_pool()
+        while True:
+            yield pool.batch(self.generator) if self.config.local_pool else pool.crops(self.generator)
+            pool.advance()
+
+    def unit_pool(self) -> PhotographedPool:
+        """The pool of the unit trained alone (``normal_pool`` or ``local_pool``) at this step."""
         model = getattr(self.model, "module", self.model)
+        fov = self.config.synthesis.fov
+        if self.config.local_pool:
+            @torch.no_grad()
+            def stage_of(inputs: torch.Tensor, lights: torch.Tensor):
+                inputs, lights = inputs.to(self.device), lights.to(self.device)
+                stage = model.basis_stage(inputs, lights, fov)
+                slope = torch.zeros_like(stage.error[:, :2])
+                if hasattr(model, "normal_unit"):
+                    deviations = model.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
+                    slope = model.normal_slope(stage, deviations, lights, fov)[:, :2]
+                return (stage.local_inputs.float().cpu(), stage.weights.float().cpu(),
+                        stage.global_bases.float().cpu(), slope.float().cpu())
+
+            return LocalUnitPool(self.materials(), self.config, self.step, stage_of)
 
         @torch.no_grad()
         def diffuse_of(inputs: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:
@@ -824,10 +954,7 @@ class Trainer:
                            with_normal_unit=False)
             return output.maps[:, constants.DIFFUSE].float().cpu()
 
-        pool = NormalUnitPool(self.materials(), self.config, self.step, diffuse_of)
-        while True:
-            yield pool.crops(self.generator)
-            pool.advance()
+        return NormalUnitPool(self.materials(), self.config, self.step, diffuse_of)
 
     def materials(self) -> TrainingMaterials:
         """The run's training materials by number."""
@@ -855,7 +982,7 @@ class Trainer:
                    disable=None if self.progress else True)
         iterator = None
         if self.step < config.steps:
-            iterator = self.pool_crops() if config.normal_pool else iter(self.loader())
+            iterator = self.pool_crops() if config.normal_pool or config.local_pool else iter(self.loader())
         if config.validate_every and self.step == 0 and self.rank == 0:
             # The starting point of the learning curve; after the workers start, since forking a
             # process whose OpenMP threads have run can deadlock the child.

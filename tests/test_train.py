@@ -440,24 +440,30 @@ def test_the_normal_pool_at_a_step_is_the_same_reached_or_rebuilt(tmp_path):
                            crop_normals)
 
 
+def assert_only_the_unit_learns_and_resumes_exactly(make_config, tmp_path, source, unit: str) -> None:
+    """A run of ``make_config`` from ``source`` changes only ``unit``, and one stopped and resumed
+    ends with the same weights as one run straight through."""
+    straight = Trainer(make_config(tmp_path / "a", init=str(source)), progress=False)
+    before = {name: value.clone() for name, value in straight.model.state_dict().items()}
+    straight.run()
+    after = straight.model.state_dict()
+    assert {name.split(".")[0] for name in after if not torch.equal(before[name], after[name])} == {unit}
+    interrupted = Trainer(make_config(tmp_path / "b", init=str(source)), progress=False)
+    interrupted.run(stop_at=2)
+    resumed = Trainer(make_config(tmp_path / "b", init=str(source)), resume=True, progress=False)
+    resumed.run()
+    b = load_model(tmp_path / "b" / "run" / "model.safetensors").state_dict()
+    for name, value in load_model(tmp_path / "a" / "run" / "model.safetensors").state_dict().items():
+        assert torch.equal(value, b[name]), name
+
+
 def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path):
     from mideepbasis.model.checkpoint import save_checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
 
     torch.manual_seed(0)
     source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny")))
-    straight = Trainer(pool_config(tmp_path / "a", init=str(source)), progress=False)
-    before = {name: value.clone() for name, value in straight.model.state_dict().items()}
-    straight.run()
-    after = straight.model.state_dict()
-    assert {name.split(".")[0] for name in after if not torch.equal(before[name], after[name])} == {"normal_unit"}
-    interrupted = Trainer(pool_config(tmp_path / "b", init=str(source)), progress=False)
-    interrupted.run(stop_at=2)
-    resumed = Trainer(pool_config(tmp_path / "b", init=str(source)), resume=True, progress=False)
-    resumed.run()
-    b = load_model(tmp_path / "b" / "run" / "model.safetensors").state_dict()
-    for name, value in load_model(tmp_path / "a" / "run" / "model.safetensors").state_dict().items():
-        assert torch.equal(value, b[name]), name
+    assert_only_the_unit_learns_and_resumes_exactly(pool_config, tmp_path, source, "normal_unit")
     # On a pool that never changes the unit fits the normals over a flat rest.
     trainer = Trainer(pool_config(tmp_path / "c", init=str(source), normal_pool_refresh=1, steps=80, batch=4),
                       progress=False)
@@ -538,3 +544,53 @@ def test_the_crop_rmse_loss_is_the_mean_of_the_crops_rmse():
     predicted.requires_grad_(True)
     normal_unit_loss(predicted, truth, "crop_rmse").backward()
     assert torch.isfinite(predicted.grad).all() and predicted.grad[0].abs().sum() > 0
+
+
+def local_pool_config(tmp_path, **overrides):
+    values = dict(network={"normal_unit_width": 4}, train_only=("local_unit",), vc_weight=0.0, local_pool=3)
+    return tiny_config(tmp_path, **{**values, **overrides})
+
+
+def test_the_local_pool_holds_what_the_network_gives_its_local_unit(tmp_path):
+    """A local-pool material, rebuilt from the stored stage as a step does, is the network's own prediction."""
+    from mideepbasis.data.synth import synthesize
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, DeepBasisOutput, preset
+    from mideepbasis.train import LocalUnitPool
+
+    torch.manual_seed(0)
+    source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny", normal_unit_width=4)))
+    trainer = Trainer(local_pool_config(tmp_path, init=str(source)), progress=False)
+    pool, model, config = trainer.unit_pool(), trainer.model, trainer.config
+    assert isinstance(pool, LocalUnitPool)
+    # Material 1 of the run's sources, photographed as the pool does (slot 1, its own generator).
+    maps = trainer.materials()[1][None]
+    photographed = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + 1), config.synthesis)
+    with torch.no_grad():
+        expected = model(photographed.inputs, photographed.lights, fov=config.synthesis.fov).maps
+        deviations = model.local_deviations(pool.local_inputs[1:2], pool.weights[1:2], pool.global_bases[1:2])
+    slope = pool.slope[1:2]
+    assert slope.abs().max() > 0  # the normal unit's part is there
+    shared = torch.cat([slope, torch.zeros(1, 8, *slope.shape[-2:])], 1)
+    rebuilt = DeepBasisOutput.from_bases(pool.weights[1:2], pool.global_bases[1:2], deviations + shared[:, None],
+                                         keep_bases=False).maps
+    torch.testing.assert_close(rebuilt, expected, atol=1e-5, rtol=0)
+    torch.testing.assert_close(pool.maps[1], maps[0])
+
+
+def test_the_local_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path):
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny", normal_unit_width=4)))
+    assert_only_the_unit_learns_and_resumes_exactly(local_pool_config, tmp_path, source, "local_unit")
+    # On a pool that never changes the local unit fits its materials.
+    trainer = Trainer(local_pool_config(tmp_path / "c", init=str(source), steps=60, batch=3), progress=False)
+    batch = next(trainer.pool_crops())
+    losses = [trainer.train_step(batch)["loss"] for _ in range(60)]
+    assert sum(losses[-10:]) < 0.8 * sum(losses[:10]), losses
+    with pytest.raises(ValueError, match="local_pool trains the local unit alone"):
+        tiny_config(tmp_path, local_pool=3)
+    with pytest.raises(ValueError, match="give one of them"):
+        local_pool_config(tmp_path, normal_pool=3)

@@ -481,6 +481,19 @@ class DeepBasisNet(nn.Module):
         """Predict the material seen in ``inputs`` (B, 9, H, W) taken under flashes at ``lights`` (B, 3).
         ``with_normal_unit`` False leaves the normal unit out (its slope, the normal's only change, is
         not added): everything but the normal is the same, for less work."""
+        stage = self.basis_stage(inputs, lights, fov)
+        if isinstance(stage, DeepBasisOutput):
+            return stage
+        deviations = self.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
+        if with_normal_unit and hasattr(self, "normal_unit"):
+            deviations = deviations + self.normal_slope(stage, deviations, lights, fov)[:, None]
+        return DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations, error=stage.error,
+                                          extras=stage.extras)
+
+    def basis_stage(self, inputs: torch.Tensor, lights: torch.Tensor | None,
+                    fov: float = constants.DEFAULT_FOV_DEG) -> BasisStage | DeepBasisOutput:
+        """Everything before the local unit: the weights, the global bases and the local unit's
+        inputs (a ``BasisStage``); for a network without a local unit, its whole output."""
         config = self.config
         height, width = inputs.shape[-2:]
         if height % config.stride or width % config.stride:
@@ -515,22 +528,57 @@ class DeepBasisNet(nn.Module):
             rendered = render_flash(global_maps.float(), lights.view(batch, 1, 3).float(), fov=fov,
                                     convention=config.convention, extent=config.plane_extent)[:, 0]
         error = rendered.clamp(0.0, 1.0) - photo.float()
+        return BasisStage(weights=weights, global_bases=global_bases, local_inputs=torch.cat([inputs, error, weights], dim=1),
+                          photo=photo, error=error, extras=extras)
+
+    def local_deviations(self, local_inputs: torch.Tensor, weights: torch.Tensor,
+                         global_bases: torch.Tensor) -> torch.Tensor:
+        """The local unit's deviations of every basis, (B, N, 10, H, W) signed space, from a
+        ``BasisStage``'s local inputs, weights (B, N, H, W) and global bases (B, N, 10)."""
+        batch, n = weights.shape[:2]
+        height, width = weights.shape[-2:]
         # The global bases enter as constant planes (N x 10 channels) without being built.
-        local_inputs = torch.cat([inputs, error, weights], dim=1)
         deviations = torch.tanh(self.local_unit(local_inputs, planes=global_bases.reshape(batch, -1)))
-        deviations = deviations.view(batch, n, constants.BASIS_CHANNELS, height, width)
-        if with_normal_unit and hasattr(self, "normal_unit"):
-            diffuse = None
-            if config.normal_unit_albedo:  # the unit leaves the diffuse as it is: blend it first
-                with torch.no_grad():
-                    diffuse = DeepBasisOutput.from_bases(weights, global_bases, deviations,
-                                                         keep_bases=False).maps[:, constants.DIFFUSE].float()
-            relief = relief_inputs(photo.float(), lights.view(batch, 3).float(), fov, config.convention,
-                                   config.plane_extent, diffuse=diffuse).to(inputs.dtype)
-            slope = torch.tanh(self.normal_unit(relief))  # (B, 2, H, W): the x and y of the normal
-            shared = torch.cat([slope, slope.new_zeros(batch, constants.BASIS_CHANNELS - 2, height, width)], dim=1)
-            deviations = deviations + shared[:, None]
-        return DeepBasisOutput.from_bases(weights, global_bases, deviations, error=error, extras=extras)
+        return deviations.view(batch, n, constants.BASIS_CHANNELS, height, width)
+
+    def normal_slope(self, stage: BasisStage, deviations: torch.Tensor, lights: torch.Tensor,
+                     fov: float = constants.DEFAULT_FOV_DEG) -> torch.Tensor:
+        """The normal unit's change of every basis, (B, 10, H, W) signed space: the normal's x and y
+        (its slope over a flat rest), zero elsewhere."""
+        config = self.config
+        batch, _, height, width = stage.photo.shape
+        diffuse = None
+        if config.normal_unit_albedo:  # the unit leaves the diffuse as it is: blend it first
+            with torch.no_grad():
+                diffuse = DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations,
+                                                     keep_bases=False).maps[:, constants.DIFFUSE].float()
+        relief = relief_inputs(stage.photo.float(), lights.view(batch, 3).float(), fov, config.convention,
+                               config.plane_extent, diffuse=diffuse).to(stage.local_inputs.dtype)
+        slope = torch.tanh(self.normal_unit(relief))  # (B, 2, H, W): the x and y of the normal
+        return torch.cat([slope, slope.new_zeros(batch, constants.BASIS_CHANNELS - 2, height, width)], dim=1)
+
+
+@dataclass
+class BasisStage:
+    """What ``DeepBasisNet.basis_stage`` passes on to the local unit (signed space)."""
+
+    weights: torch.Tensor
+    """(B, N, H, W) blending weights."""
+
+    global_bases: torch.Tensor
+    """(B, N, 10) global bases."""
+
+    local_inputs: torch.Tensor
+    """(B, input channels + 3 + N, H, W): the inputs, the error map, the weights."""
+
+    photo: torch.Tensor
+    """(B, 3, H, W) the decoded photo [linear]."""
+
+    error: torch.Tensor
+    """(B, 3, H, W) the global bases' render minus the photo."""
+
+    extras: dict = field(default_factory=dict)
+    """What the output keeps for the losses (``decoder_raw``)."""
 
 
 def count_parameters(module: nn.Module) -> int:
