@@ -59,7 +59,9 @@ def plot(output: Path) -> None:
     import matplotlib.pyplot as plt
 
     stages = load_stages()
-    figure, axes = plt.subplots(1, 5, figsize=(20, 4))
+    stages_count = len(load_stages())
+    # The legend goes under the panels (one line per stage), where it hides no curve.
+    figure, axes = plt.subplots(1, 5, figsize=(20, 4 + 0.16 * stages_count))
     names = ["normal", "diffuse", "roughness", "specular"]
     for index, stage in enumerate(stages):
         colour = f"C{index}"
@@ -77,9 +79,10 @@ def plot(output: Path) -> None:
         axis.set_title(f"{name} RMSE" + (" (dotted: flat)" if name == "normal" else ""))
         axis.set_xlabel("training materials seen [thousands]")
         axis.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
+    handles, labels = axes[0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="lower center", ncol=2, fontsize=7, frameon=False)
     figure.suptitle("held-out procedural validation (64 materials, 128 px), the shipped model's lineage")
-    figure.tight_layout()
+    figure.tight_layout(rect=(0, 0.08 * stages_count / 5 + 0.02, 1, 1))
     save_figure(figure, output)
     print(f"wrote {output}")
 
