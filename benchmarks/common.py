@@ -74,4 +74,6 @@ def run_generator_settings(path: Path) -> dict:
         procedural = json.loads(path.read_text())["procedural"]
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise SystemExit(f"{path}: not a training run's config.json with procedural settings ({error})")
+    if not isinstance(procedural, dict):
+        raise SystemExit(f"{path}: its procedural settings are {procedural!r}, not a table of settings")
     return {key: tuple(value) if isinstance(value, list) else value for key, value in procedural.items()}

@@ -48,20 +48,22 @@ def luminance(rgb: torch.Tensor) -> torch.Tensor:
 
 
 def highlight_leak(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, fov: float,
-                   convention: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   convention: str, extent: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-material leak (B,) of predicted maps into their diffuse under the flash at ``lights``
-    (B, 3), relative and in albedo units, and the highlight regions (B, H, W) bool. Maps (B, 10, H, W)."""
+    (B, 3), relative and in albedo units (NaN where the lobe marks no region: a material without
+    specular), and the highlight regions (B, H, W) bool. Maps (B, 10, H, W)."""
     from mideepbasis.render import render_flash
 
     specular_only = truth.clone()
     specular_only[:, constants.DIFFUSE] = 0.0
     with torch.no_grad():
-        lobe = luminance(render_flash(specular_only, lights.view(-1, 1, 3), fov=fov, convention=convention)[:, 0])
+        lobe = luminance(render_flash(specular_only, lights.view(-1, 1, 3), fov=fov, convention=convention,
+                                      extent=extent)[:, 0])
     threshold = torch.quantile(lobe.flatten(1), 1.0 - HIGHLIGHT_SHARE, dim=1).view(-1, 1, 1)
     region = lobe >= threshold
     excess = luminance(predicted[:, constants.DIFFUSE]) - luminance(truth[:, constants.DIFFUSE])
     inside = (excess * region).sum(dim=(1, 2)) / region.sum(dim=(1, 2))
-    outside = (excess * ~region).sum(dim=(1, 2)) / (~region).sum(dim=(1, 2))
+    outside = (excess * ~region).sum(dim=(1, 2)) / (~region).sum(dim=(1, 2))  # 0 / 0 = NaN: no region
     scale = luminance(truth[:, constants.DIFFUSE]).mean(dim=(1, 2)).clamp_min(1e-3)
     return (inside - outside) / scale, inside - outside, region
 
@@ -86,7 +88,10 @@ def main() -> None:
                                          model.config.plane_extent)
             predicted.append(capturer.predict(Photo(photos[0], fov, "argument"), offsets[index]).maps)
             lights.append(light)
-    leak, albedo_leak, _ = highlight_leak(torch.cat(predicted), materials.maps, torch.cat(lights), fov, convention)
+    leak, albedo_leak, _ = highlight_leak(torch.cat(predicted), materials.maps, torch.cat(lights), fov, convention,
+                                          model.config.plane_extent)
+    measured = torch.isfinite(leak)
+    leak, albedo_leak = leak[measured], albedo_leak[measured]
 
     # The demo: the bundled photo captured as `mideepbasis demo` does, against its true maps and light.
     folder = example_capture_dir()
@@ -97,7 +102,7 @@ def main() -> None:
     demo_maps[:, constants.NORMAL] = F.normalize(demo_maps[:, constants.NORMAL], dim=1)
     demo_light = geometry.light_positions(torch.tensor([recipe["offset"]]), recipe["fov_deg"])
     demo_leak, demo_albedo_leak, demo_region = highlight_leak(result.material.to_tensor()[None], demo_maps, demo_light,
-                                            recipe["fov_deg"], convention)
+                                                              recipe["fov_deg"], convention, model.config.plane_extent)
     demo_offset = recipe["offset"]
 
     report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE,

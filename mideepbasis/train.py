@@ -188,9 +188,11 @@ class TrainConfig:
     replaced each step. Each is stored with what the frozen rest of the network gives the local
     unit (its inputs: the photo, the error map of the global bases, the weights; the global bases)
     and the normal unit's slope, so a step runs the local unit alone. The loss is the whole
-    network's (``normal_weight``, ``render_weight``), without the variation pair; a normal unit
-    that reads the albedo shading keeps the slope it had with the starting local unit. Validation
-    runs the whole network. One process only."""
+    network's (``normal_weight``, ``render_weight``), without the variation pair
+    (``vc_weight``, ``saturation_weight`` and ``workers`` do not apply). Not with a normal unit
+    that reads the albedo shading: its slope would depend on the local unit being trained, so a
+    resumed run's pool would differ. The stage is computed in float32 (as ``capture`` runs).
+    Validation runs the whole network. One process only."""
 
     local_pool_refresh: int = field(default=1, metadata={"parse": positive_int})
     """Materials of the local pool replaced by new ones each step."""
@@ -241,6 +243,9 @@ class TrainConfig:
                                  "and a network with a local unit")
             if self.local_pool_refresh > self.local_pool:
                 raise ValueError("local_pool_refresh cannot exceed local_pool")
+            if self.network.normal_unit_albedo:
+                raise ValueError("local_pool cannot train under a normal unit that reads the albedo shading "
+                                 "(its slope would follow the local unit being trained)")
 
     @classmethod
     def from_dict(cls, values: dict, source: str = "checkpoint", network: dict | None = None) -> TrainConfig:
@@ -692,8 +697,8 @@ class Trainer:
         self.out = Path(config.out)
         self.progress = progress and self.rank == 0
         torch.manual_seed(config.seed)
-        if config.normal_pool and self.world_size > 1:
-            raise InputError("train --normal-pool runs in one process: start it without torchrun")
+        if (config.normal_pool or config.local_pool) and self.world_size > 1:
+            raise InputError("train --normal-pool and --local-pool run in one process: start them without torchrun")
         network_config = config.network
         if config.size % network_config.stride:
             raise InputError(f"training size {config.size} is not a multiple of the {config.preset} network's "

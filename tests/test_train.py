@@ -594,3 +594,5 @@ def test_the_local_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path)
         tiny_config(tmp_path, local_pool=3)
     with pytest.raises(ValueError, match="give one of them"):
         local_pool_config(tmp_path, normal_pool=3)
+    with pytest.raises(ValueError, match="reads the albedo shading"):
+        local_pool_config(tmp_path, network={"normal_unit_width": 4, "normal_unit_albedo": True})
