@@ -40,7 +40,7 @@ from .data.synth import SynthesisConfig, TrainingBatch, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
 from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, relief_channels, relief_inputs
-from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, to_signed
+from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, slope_change, to_signed
 
 
 @dataclass
@@ -399,6 +399,10 @@ class PhotographedPool:
     def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
         raise NotImplementedError
 
+    def batch(self, generator: torch.Generator):
+        """A training batch of the pool's unit."""
+        raise NotImplementedError
+
     def advance(self) -> None:
         """Replace the pool's oldest materials: the pool of the next step."""
         first = self.step * self.refresh + self.size
@@ -430,7 +434,7 @@ class NormalUnitPool(PhotographedPool):
                                           diffuse=diffuse)[0]
         self.normals[slot] = maps[0, constants.NORMAL]
 
-    def crops(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    def batch(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """A batch of random crops, each mirrored and turned at random: (relief inputs
         (B, relief channels, C, C), true normals (B, 3, C, C))."""
         config, crop = self.config, self.config.normal_crop
@@ -865,18 +869,23 @@ class Trainer:
         else:
             sup, vc = supervised_loss(output, target, config.normal_weight), torch.zeros((), device=self.device)
         saturation = saturation_penalty(output.extras["decoder_raw"].float())
-        loss = sup + config.vc_weight * vc + config.saturation_weight * saturation
-        losses = {}
-        if config.render_weight > 0:
-            predicted = (original if use_vc else output).maps
-            render_lights, render_views = sample_render_geometry(maps.shape[0], config.render_lights, self.generator)
-            rendering = rendering_loss(predicted, target, render_lights.to(self.device), render_views.to(self.device),
-                                       self.synthesis.convention)
-            loss = loss + config.render_weight * rendering
-            losses["l_render"] = rendering.item()
+        loss, losses = self._with_rendering_loss(sup + config.vc_weight * vc + config.saturation_weight * saturation,
+                                                 (original if use_vc else output).maps, target)
         norm = self._optimise(loss)
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
                 **losses, "grad_norm": norm.item()}
+
+    def _with_rendering_loss(self, loss: torch.Tensor, predicted: torch.Tensor, target: torch.Tensor
+                             ) -> tuple[torch.Tensor, dict]:
+        """``loss`` plus ``render_weight`` times the rendering loss of the predicted maps (B, 10, H, W)
+        under random lights and views, and the logged terms ({} when the weight is 0)."""
+        config = self.config
+        if config.render_weight <= 0:
+            return loss, {}
+        render_lights, render_views = sample_render_geometry(target.shape[0], config.render_lights, self.generator)
+        rendering = rendering_loss(predicted, target, render_lights.to(self.device), render_views.to(self.device),
+                                   self.synthesis.convention)
+        return loss + config.render_weight * rendering, {"l_render": rendering.item()}
 
     def _optimise(self, loss: torch.Tensor) -> torch.Tensor:
         """Backward, the gradient clipped to ``grad_clip``, one Adam step, the next learning rate;
@@ -909,29 +918,22 @@ class Trainer:
         weights, global_bases, maps = (t.to(self.device) for t in (batch.weights, batch.global_bases, batch.maps))
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=config.bf16):
             deviations = model.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
-        slope = batch.slope.to(self.device)
-        shared = torch.cat([slope, slope.new_zeros(slope.shape[0], constants.BASIS_CHANNELS - 2, *slope.shape[-2:])], 1)
-        output = DeepBasisOutput.from_bases(weights, global_bases, deviations.float() + shared[:, None], keep_bases=False)
+        change = slope_change(batch.slope.to(self.device))
+        output = DeepBasisOutput.from_bases(weights, global_bases, deviations.float() + change[:, None], keep_bases=False)
         sup = supervised_loss(output, maps, config.normal_weight)
-        loss, losses = sup, {}
-        if config.render_weight > 0:
-            render_lights, render_views = sample_render_geometry(maps.shape[0], config.render_lights, self.generator)
-            rendering = rendering_loss(output.maps, maps, render_lights.to(self.device), render_views.to(self.device),
-                                       self.synthesis.convention)
-            loss = loss + config.render_weight * rendering
-            losses["l_render"] = rendering.item()
+        loss, losses = self._with_rendering_loss(sup, output.maps, maps)
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": 0.0, "l_saturation": 0.0, **losses,
                 "grad_norm": norm.item()}
 
     # --- the loop ----------------------------------------------------------------------------------
 
-    def pool_crops(self):
+    def pool_batches(self):
         """Batches of the unit trained alone from this step on (``TrainConfig.normal_pool``: crops
         of the normal pool; ``local_pool``: materials of the local pool), then the pool moves on."""
         pool = self.unit_pool()
         while True:
-            yield pool.batch(self.generator) if self.config.local_pool else pool.crops(self.generator)
+            yield pool.batch(self.generator)
             pool.advance()
 
     def unit_pool(self) -> PhotographedPool:
@@ -946,7 +948,7 @@ class Trainer:
                 slope = torch.zeros_like(stage.error[:, :2])
                 if hasattr(model, "normal_unit"):
                     deviations = model.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
-                    slope = model.normal_slope(stage, deviations, lights, fov)[:, :2]
+                    slope = model.normal_slope(stage, deviations, lights, fov)
                 return (stage.local_inputs.float().cpu(), stage.weights.float().cpu(),
                         stage.global_bases.float().cpu(), slope.float().cpu())
 
@@ -987,7 +989,7 @@ class Trainer:
                    disable=None if self.progress else True)
         iterator = None
         if self.step < config.steps:
-            iterator = self.pool_crops() if config.normal_pool or config.local_pool else iter(self.loader())
+            iterator = self.pool_batches() if config.normal_pool or config.local_pool else iter(self.loader())
         if config.validate_every and self.step == 0 and self.rank == 0:
             # The starting point of the learning curve; after the workers start, since forking a
             # process whose OpenMP threads have run can deadlock the child.

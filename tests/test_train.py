@@ -426,7 +426,7 @@ def test_the_normal_pool_at_a_step_is_the_same_reached_or_rebuilt(tmp_path):
     assert torch.equal(advanced.relief, rebuilt.relief) and torch.equal(advanced.normals, rebuilt.normals)
     # Four steps of two new materials each replaced every material of the pool of three.
     assert not any(torch.equal(first[i], rebuilt.normals[j]) for i in range(3) for j in range(3))
-    relief, normals = rebuilt.crops(torch.Generator().manual_seed(0))
+    relief, normals = rebuilt.batch(torch.Generator().manual_seed(0))
     assert relief.shape == (2, 7, 16, 16) and normals.shape == (2, 3, 16, 16)
     # Each crop's relief inputs and normals come from the same material, window and move.
     for crop_relief, crop_normals in zip(relief, normals):
@@ -467,7 +467,7 @@ def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path
     # On a pool that never changes the unit fits the normals over a flat rest.
     trainer = Trainer(pool_config(tmp_path / "c", init=str(source), normal_pool_refresh=1, steps=80, batch=4),
                       progress=False)
-    pool = trainer.pool_crops()
+    pool = trainer.pool_batches()
     crops = next(pool)
     losses = [trainer.train_step(crops)["loss"] for _ in range(80)]
     assert sum(losses[-10:]) < 0.7 * sum(losses[:10]), losses
@@ -500,7 +500,7 @@ def test_a_unit_given_the_albedo_shading_starts_as_the_checkpoint_and_learns_fro
     with torch.no_grad():
         torch.testing.assert_close(model(inputs, lights).maps, source_net(inputs, lights).maps, rtol=1e-5, atol=1e-6)
     # The pool's eighth channel is the albedo shading of the frozen network's own diffuse.
-    pool = next(trainer.pool_crops())
+    pool = next(trainer.pool_batches())
     assert pool[0].shape == (2, 8, 16, 16)
     before = {name: value.clone() for name, value in trainer.model.state_dict().items()}
     trainer.run()
@@ -587,7 +587,7 @@ def test_the_local_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path)
     assert_only_the_unit_learns_and_resumes_exactly(local_pool_config, tmp_path, source, "local_unit")
     # On a pool that never changes the local unit fits its materials.
     trainer = Trainer(local_pool_config(tmp_path / "c", init=str(source), steps=60, batch=3), progress=False)
-    batch = next(trainer.pool_crops())
+    batch = next(trainer.pool_batches())
     losses = [trainer.train_step(batch)["loss"] for _ in range(60)]
     assert sum(losses[-10:]) < 0.8 * sum(losses[:10]), losses
     with pytest.raises(ValueError, match="local_pool trains the local unit alone"):

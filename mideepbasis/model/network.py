@@ -486,7 +486,7 @@ class DeepBasisNet(nn.Module):
             return stage
         deviations = self.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
         if with_normal_unit and hasattr(self, "normal_unit"):
-            deviations = deviations + self.normal_slope(stage, deviations, lights, fov)[:, None]
+            deviations = deviations + slope_change(self.normal_slope(stage, deviations, lights, fov))[:, None]
         return DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations, error=stage.error,
                                           extras=stage.extras)
 
@@ -543,10 +543,10 @@ class DeepBasisNet(nn.Module):
 
     def normal_slope(self, stage: BasisStage, deviations: torch.Tensor, lights: torch.Tensor,
                      fov: float = constants.DEFAULT_FOV_DEG) -> torch.Tensor:
-        """The normal unit's change of every basis, (B, 10, H, W) signed space: the normal's x and y
-        (its slope over a flat rest), zero elsewhere."""
+        """The normal unit's slope, (B, 2, H, W): the x and y it adds to every basis's normal
+        (``slope_change``)."""
         config = self.config
-        batch, _, height, width = stage.photo.shape
+        batch = stage.photo.shape[0]
         diffuse = None
         if config.normal_unit_albedo:  # the unit leaves the diffuse as it is: blend it first
             with torch.no_grad():
@@ -554,8 +554,14 @@ class DeepBasisNet(nn.Module):
                                                      keep_bases=False).maps[:, constants.DIFFUSE].float()
         relief = relief_inputs(stage.photo.float(), lights.view(batch, 3).float(), fov, config.convention,
                                config.plane_extent, diffuse=diffuse).to(stage.local_inputs.dtype)
-        slope = torch.tanh(self.normal_unit(relief))  # (B, 2, H, W): the x and y of the normal
-        return torch.cat([slope, slope.new_zeros(batch, constants.BASIS_CHANNELS - 2, height, width)], dim=1)
+        return torch.tanh(self.normal_unit(relief))
+
+
+def slope_change(slope: torch.Tensor) -> torch.Tensor:
+    """The normal unit's slope (B, 2, H, W) as a change of a basis, (B, 10, H, W) signed space: the
+    normal's x and y, zero elsewhere."""
+    batch, _, height, width = slope.shape
+    return torch.cat([slope, slope.new_zeros(batch, constants.BASIS_CHANNELS - 2, height, width)], dim=1)
 
 
 @dataclass
