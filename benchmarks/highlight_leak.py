@@ -32,8 +32,9 @@ import torch.nn.functional as F
 from common import RESULTS, SHARED_TEST, write_report
 
 from mideepbasis import constants, geometry
-from mideepbasis.capture import CaptureConfig, Capturer, Photo
-from mideepbasis.evaluation.protocol import evaluation_offsets, flash_photos, load_evaluation_materials
+from mideepbasis.capture import CaptureConfig, Capturer
+from mideepbasis.evaluation.protocol import evaluation_offsets, load_evaluation_materials
+from mideepbasis.evaluation.run import _predict_all
 from mideepbasis.material import Material
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.render.api import example_capture_dir
@@ -78,17 +79,10 @@ def main() -> None:
 
     model = load_model(args.model)
     fov, convention = constants.DEFAULT_FOV_DEG, model.config.convention
-    capturer = Capturer(model, CaptureConfig(fov=fov))
-    materials = load_evaluation_materials(SHARED_TEST, "deschaintre5")
-    offsets = evaluation_offsets(len(materials.maps), 0, fov)
-    predicted, lights = [], []
-    with torch.no_grad():
-        for index in range(len(materials.maps)):
-            photos, light = flash_photos(materials.maps[index:index + 1], offsets[index:index + 1], fov, convention,
-                                         model.config.plane_extent)
-            predicted.append(capturer.predict(Photo(photos[0], fov, "argument"), offsets[index]).maps)
-            lights.append(light)
-    leak, albedo_leak, _ = highlight_leak(torch.cat(predicted), materials.maps, torch.cat(lights), fov, convention,
+    truth = load_evaluation_materials(SHARED_TEST, "deschaintre5").maps
+    offsets = evaluation_offsets(len(truth), 0, fov)
+    predicted, _, _ = _predict_all(model, truth, offsets, fov, "known", 0, True, "model")
+    leak, albedo_leak, _ = highlight_leak(predicted, truth, geometry.light_positions(offsets, fov), fov, convention,
                                           model.config.plane_extent)
     measured = torch.isfinite(leak)
     leak, albedo_leak = leak[measured], albedo_leak[measured]

@@ -60,6 +60,13 @@ def resampled(image: torch.Tensor, size: int) -> torch.Tensor:
     return F.interpolate(small, size=image.shape[-2:], mode="bilinear", align_corners=False)
 
 
+def flat_normals(like: torch.Tensor) -> torch.Tensor:
+    """Flat normals (+z) of the shape of the normals ``like`` (B, 3, H, W): the baseline."""
+    flat = torch.zeros_like(like)
+    flat[:, 2] = 1.0
+    return flat
+
+
 def stored_rmse(normals: torch.Tensor, truth: torch.Tensor) -> float:
     """Mean per-material RMSE of unit normals (B, 3, H, W) in the stored encoding (n + 1) / 2."""
     return float((((normals - truth) / 2) ** 2).mean(dim=(1, 2, 3)).sqrt().mean())
@@ -116,17 +123,14 @@ def relief_cue(args) -> None:
                                          fov=synthesis.fov).maps[:, constants.NORMAL].float()
                                    for start in range(0, len(maps), 8)])
         truth = maps[:, constants.NORMAL]
-        flat = torch.zeros_like(truth)
-        flat[:, 2] = 1.0
-        report["normal_rmse"][name] = {"model": stored_rmse(predicted, truth), "flat": stored_rmse(flat, truth)}
+        report["normal_rmse"][name] = {"model": stored_rmse(predicted, truth), "flat": stored_rmse(flat_normals(truth), truth)}
         print(f"{name:>16}: model {report['normal_rmse'][name]['model']:.4f}, flat {report['normal_rmse'][name]['flat']:.4f}")
     write_report(args.output.with_name(args.output.stem + "_relief_cue.json"), "normal_bands", report)
 
 
 def by_colour_cue(predicted: torch.Tensor, truth: torch.Tensor, diffuse: torch.Tensor) -> dict:
     """Normal RMSE of the model and of the flat normal on the materials grouped by ``slope_correlation``."""
-    flat = torch.zeros_like(truth)
-    flat[:, 2] = 1.0
+    flat = flat_normals(truth)
     cue = torch.tensor([slope_correlation(n.numpy(), d.mean(0).numpy()) for n, d in zip(truth, diffuse)])
     groups = {"darker is deeper (> 0.2)": cue > 0.2, "neither": cue.abs() <= 0.2,
               "brighter is deeper (< -0.2)": cue < -0.2}
@@ -181,8 +185,7 @@ def main() -> None:
 
     materials = load_evaluation_materials(SHARED_TEST, "deschaintre5")
     truth = materials.stored[:, constants.NORMAL]  # as evaluate compares: the normals as stored
-    flat = torch.zeros_like(truth)
-    flat[:, 2] = 1.0
+    flat = flat_normals(truth)
     mean_normal = F.normalize(truth.mean(dim=(2, 3), keepdim=True).expand_as(truth), dim=1)
     floors = {f"oracle_{size}px": stored_rmse(F.normalize(resampled(truth, size), dim=1), truth) for size in (32, 64, 128)}
     floors.update({"oracle_mean_normal": stored_rmse(mean_normal, truth), "flat": stored_rmse(flat, truth)})

@@ -27,6 +27,7 @@ from mideepbasis.evaluation.protocol import (RERENDER_COUNT, evaluation_offsets,
                                              random_lights_and_views)
 from mideepbasis.evaluation.run import _predict_all
 from mideepbasis.model.checkpoint import load_model
+from mideepbasis.train import flat_normals
 
 
 def main() -> None:
@@ -54,9 +55,7 @@ def main() -> None:
         alone = truth.clone()
         alone[:, channels] = predicted[:, channels]
         report["predicted_map_alone"][name] = error(alone)
-    flat = predicted.clone()
-    flat[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
-    report["flat_normal"] = error(flat)
+    report["flat_normal"] = error(flat_normals(predicted))
     print(f"prediction {report['prediction']:.4f}; with a flat normal {report['flat_normal']:.4f}")
     for name in constants.MAP_SLICES:
         print(f"{name:>9}: true map {report['true_map'][name]:.4f}, "
