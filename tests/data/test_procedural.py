@@ -200,3 +200,24 @@ def test_materials_stay_those_of_earlier_runs_with_the_new_options_off():
         maps = generate(seed, config=config).to_tensor().double()
         assert float(maps[:3].sum()) == pytest.approx(normal_sum, rel=1e-9, abs=1e-6), seed
         assert float(maps[3:].sum()) == pytest.approx(rest_sum, rel=1e-9, abs=1e-6), seed
+
+
+def test_gloss_and_darkening_scale_the_roughness_and_albedo_and_keep_the_relief():
+    plain_config = GeneratorConfig(size=64)
+    shifted_config = GeneratorConfig(size=64, gloss_probability=1.0, gloss_scale=(0.5, 0.5),
+                                     darkening_probability=1.0, darkening_scale=(0.25, 0.25))
+    for seed in range(4):
+        plain, shifted = generate(seed, config=plain_config), generate(seed, config=shifted_config)
+        assert shifted.provenance["roughness_factor"] == pytest.approx(0.5)
+        assert shifted.provenance["diffuse_factor"] == pytest.approx(0.25)
+        assert "roughness_factor" not in plain.provenance and "diffuse_factor" not in plain.provenance
+        assert torch.equal(plain.normal, shifted.normal) and torch.equal(plain.specular, shifted.specular)
+        torch.testing.assert_close(shifted.roughness, 0.5 * plain.roughness, atol=1e-6, rtol=1e-6)
+        # Where the surface is a dielectric, clipping leaves the diffuse alone: the factor is all.
+        dielectric = (plain.specular.mean(dim=0) < 0.3).expand_as(plain.diffuse)
+        torch.testing.assert_close(shifted.diffuse[dielectric], 0.25 * plain.diffuse[dielectric], atol=1e-6, rtol=1e-6)
+    # Drawn at their ranges' ends only: log-uniform within them.
+    drawn = GeneratorConfig(size=64, gloss_probability=1.0, darkening_probability=1.0)
+    factors = [generate(seed, config=drawn).provenance for seed in range(8)]
+    assert all(0.35 <= f["roughness_factor"] <= 1.0 and 0.15 <= f["diffuse_factor"] <= 1.0 for f in factors)
+    assert len({round(f["roughness_factor"], 6) for f in factors}) == 8

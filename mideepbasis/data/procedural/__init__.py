@@ -92,6 +92,22 @@ class GeneratorConfig:
     without it darker nearly always means deeper; in the shared test set the colours' gradient
     follows the relief's either way (``benchmarks/data.py`` coverage)."""
 
+    gloss_probability: float = 0.0
+    """Chance that the roughness is scaled by a factor drawn from ``gloss_scale``: the families'
+    roughness runs high (median of the material means 0.53, against 0.39 in the shared test
+    set), so glossy surfaces with sharp highlights are rarer than in what people photograph."""
+
+    gloss_scale: tuple[float, float] = (0.35, 1.0)
+    """Range (log-uniform) of the factor on the roughness of a glossier material."""
+
+    darkening_probability: float = 0.0
+    """Chance that the diffuse albedo is scaled by a factor drawn from ``darkening_scale``, its
+    colour kept: the families' albedos run bright (median of the material means 0.15 in linear
+    light, against 0.05 in the shared test set), so the specular term rarely dominates."""
+
+    darkening_scale: tuple[float, float] = (0.15, 1.0)
+    """Range (log-uniform) of the factor on the diffuse albedo of a darker material."""
+
 
 def _family_names(config: GeneratorConfig) -> list[str]:
     names = list(config.families) if config.families else list(FAMILIES)
@@ -142,7 +158,17 @@ def generate_surface(seed: int, config: GeneratorConfig = GeneratorConfig(),
     if canvas.chance(config.relief_inversion_probability):
         height = -height
         provenance["relief_inverted"] = True
-    surface = Surface(height, surface.diffuse, surface.roughness, surface.specular, surface.variant).clipped()
+    # The marginals' shifts come last, for the same reason, and leave the relief as it is.
+    diffuse, roughness = surface.diffuse, surface.roughness
+    if canvas.chance(config.gloss_probability):
+        factor = canvas.loguniform(*config.gloss_scale)
+        roughness = np.clip(roughness, 0, 1) * factor  # the roughness as the material would have had it
+        provenance["roughness_factor"] = factor
+    if canvas.chance(config.darkening_probability):
+        factor = canvas.loguniform(*config.darkening_scale)
+        diffuse = diffuse * factor
+        provenance["diffuse_factor"] = factor
+    surface = Surface(height, diffuse, roughness, surface.specular, surface.variant).clipped()
     return surface, height_to_normal(surface.height, config.tileable), provenance
 
 
