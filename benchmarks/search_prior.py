@@ -1,12 +1,14 @@
 """The lighting search's pull toward the centre, chosen on held-out procedural materials.
 
     .venv/bin/python benchmarks/search_prior.py [--materials 40] [--offsets 3] [--priors 0 0.01 0.02 0.03 0.1]
+    .venv/bin/python benchmarks/search_prior.py --priors 0.02 --settle-steps 0 1 -o benchmarks/results/search_settle.json
 
 Procedural materials from seeds the training does not draw (5e8 + i) are rendered at 256x256 under
 seeded hand-held offsets (``sample_offsets``, as in training) and 8-bit sRGB, as ``evaluate``
 renders its inputs. The shipped model searches for the flash with each prior weight
-(``CaptureConfig.search_prior``). Reported: mean angular error [deg] per roughness group and
-overall. The shared test set is not used, so the weight is not tuned on it. Writes
+(``CaptureConfig.search_prior``), and with each ``--settle-steps`` (``SearchConfig.settle_steps``:
+the passes stop once the light moves by that many grid steps or less). Reported: mean angular
+error [deg] per roughness group and overall, network passes per search, seconds per search. The shared test set is not used, so the weight is not tuned on it. Writes
 benchmarks/results/search_prior.json.
 """
 
@@ -39,6 +41,7 @@ def main() -> None:
     parser.add_argument("--materials", type=int, default=40)
     parser.add_argument("--offsets", type=int, default=3, help="offsets per material")
     parser.add_argument("--priors", type=float, nargs="+", default=[0.0, 0.01, 0.02, 0.03, 0.1])
+    parser.add_argument("--settle-steps", type=float, nargs="+", default=[0.0])
     parser.add_argument("--fov", type=float, default=45.0)
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "search_prior.json")
     args = parser.parse_args()
@@ -55,20 +58,29 @@ def main() -> None:
             cases.append((group, photos[0], offset))
 
     rows = {}
-    for prior in args.priors:
-        capturer = Capturer(model, CaptureConfig(fov=args.fov, search=SearchConfig(prior=prior)))
+    for prior, settle in [(prior, settle) for prior in args.priors for settle in args.settle_steps]:
+        name = f"{prior:g}" if args.settle_steps == [0.0] else f"prior {prior:g}, settle {settle:g}"
+        capturer = Capturer(model, CaptureConfig(fov=args.fov, search=SearchConfig(prior=prior, settle_steps=settle)))
         errors = {group: [] for group in ROUGHNESS_GROUPS}
+        passes = []
         started = time.perf_counter()
-        for group, photo, offset in tqdm(cases, desc=f"prior {prior:g}", unit="search"):
-            found = capturer.search(Photo(photo, args.fov, "argument")).offset
-            errors[group].append(light_error_deg(found, offset.tolist(), args.fov))
+        for group, photo, offset in tqdm(cases, desc=name, unit="search"):
+            found = capturer.search(Photo(photo, args.fov, "argument"))
+            errors[group].append(light_error_deg(found.offset, offset.tolist(), args.fov))
+            passes.append(len(found.history) - 1)
+        seconds = time.perf_counter() - started
         everything = sum(errors.values(), [])
-        rows[f"{prior:g}"] = {**{group: {"count": len(v), "mean_deg": float(np.mean(v)) if v else None}
-                                 for group, v in errors.items()},
-                              "all": {"count": len(everything), "mean_deg": float(np.mean(everything))},
-                              "seconds": time.perf_counter() - started}
-        means = ", ".join(f"{g} {rows[f'{prior:g}'][g]['mean_deg']:.2f}" for g in ROUGHNESS_GROUPS if errors[g])
-        print(f"prior {prior:g}: {means}, all {rows[f'{prior:g}']['all']['mean_deg']:.2f} deg")
+        rows[name] = {**{group: {"count": len(v), "mean_deg": float(np.mean(v)) if v else None}
+                         for group, v in errors.items()},
+                      "all": {"count": len(everything), "mean_deg": float(np.mean(everything)),
+                              "median_deg": float(np.median(everything)),
+                              "p90_deg": float(np.percentile(everything, 90))},
+                      "network_passes_mean": float(np.mean(passes)), "seconds": seconds,
+                      "seconds_per_search": seconds / len(cases)}
+        means = ", ".join(f"{g} {rows[name][g]['mean_deg']:.2f}" for g in ROUGHNESS_GROUPS if errors[g])
+        print(f"{name}: {means}, all {rows[name]['all']['mean_deg']:.2f} deg (median {rows[name]['all']['median_deg']:.2f}, "
+              f"90th percentile {rows[name]['all']['p90_deg']:.2f}); {np.mean(passes):.2f} network passes, "
+              f"{seconds / len(cases):.2f} s a search")
     write_report(args.output, "search_prior", {"materials": args.materials, "offsets_per_material": args.offsets,
                                                "held_out_seed": HELD_OUT_SEED, "rows": rows})
 

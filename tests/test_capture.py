@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from mideepbasis import cli, constants
+from mideepbasis import cli, constants, geometry
 from mideepbasis.capture import (CaptureConfig, Capturer, Photo, RefineConfig, SearchConfig, capture,
                                  field_of_view_from_focal, load_photo, predict, refine_global_bases)
 from mideepbasis.evaluation import flash_photos, light_error_deg
@@ -98,6 +98,94 @@ def test_the_search_prior_pulls_toward_the_centre_only_where_the_photo_does_not_
     # ... and one far stronger than any photo error (mean L1 <= 1) puts the flash at the centre.
     centred = oracle_search(truth, photos[0], replace(config, prior=100.0)).offset
     assert centred == pytest.approx((0.0, 0.0), abs=1e-6)
+
+
+class SteeredSearch:
+    """A network and an objective for ``search_light`` that send the search along fixed lights:
+    the material predicted under the flash at ``route[i]`` (grid steps (i, j) from the centre, where
+    every search starts) makes the objective point at ``route[i + 1]``, and the last one's at
+    ``route[loop_to]``, so that the passes can be made to go round a cycle."""
+
+    def __init__(self, route: list[tuple[int, int]], loop_to: int, fov: float = 45.0):
+        from mideepbasis.capture.search import candidate_offsets
+
+        self.fov = fov
+        self.step = 2 * geometry.max_offset(fov, constants.MAX_OFFSET_DEG) / (SearchConfig().grid - 1)
+        self.candidates = candidate_offsets(fov, constants.MAX_OFFSET_DEG, SearchConfig().grid)
+        self.route = [torch.tensor(stop, dtype=torch.float32) * self.step for stop in [(0, 0), *route]]
+        self.loop_to = loop_to + 1
+        self.predictions = 0
+
+    def target(self, light: torch.Tensor) -> torch.Tensor:
+        at = next(i for i, stop in enumerate(self.route) if torch.allclose(stop, light, atol=1e-5))
+        return self.route[at + 1] if at + 1 < len(self.route) else self.route[self.loop_to]
+
+    def predict(self, photos, lights):
+        from types import SimpleNamespace
+
+        self.predictions += 1
+        maps = torch.zeros(1, 10, 4, 4)
+        maps[:, 2] = 1.0
+        maps[:, 3:5] = lights[0, :2].view(1, 2, 1, 1)  # the light it was predicted under, kept in the diffuse
+        return SimpleNamespace(maps=maps)
+
+    def objective(self, maps, photo, offsets, fov, convention, extent=1.0):
+        return torch.linalg.vector_norm(offsets - self.target(maps[0, 3:5, 0, 0]), dim=-1)
+
+    def reference(self, passes: int) -> tuple[float, float]:
+        """The search as documented, every pass run: the passes until the light stays, then the fine
+        grid around the last candidate with the last pass's material."""
+        from mideepbasis.capture.search import candidate_offsets
+
+        def nearest(offsets, target):
+            return offsets[int(torch.argmin(torch.linalg.vector_norm(offsets - target, dim=-1)))]
+
+        current = torch.zeros(2)
+        for _ in range(passes):
+            predicted_under = current
+            best = nearest(self.candidates, self.target(current))
+            if torch.allclose(best, current, atol=1e-5):
+                break
+            current = best
+        fine = candidate_offsets(self.fov, constants.MAX_OFFSET_DEG, 9, centre=tuple(current.tolist()), span=self.step)
+        found = nearest(fine, self.target(predicted_under))
+        return float(found[0]), float(found[1])
+
+
+@pytest.mark.parametrize("route, loop_to", [([(3, 0), (-4, 2), (2, 5)], 0), ([(3, 0), (-4, 2), (2, 5), (0, -6)], 1),
+                                            ([(5, 5)], -1)])
+def test_a_search_going_round_a_cycle_stops_early_where_all_its_passes_would_end(monkeypatch, route, loop_to):
+    from mideepbasis.capture import search as search_module
+
+    photo = torch.zeros(3, 8, 8)
+    for passes in range(1, 9):
+        steered = SteeredSearch(route, loop_to)
+        monkeypatch.setattr(search_module, "light_objective", steered.objective)
+        found = search_module.search_light(steered.predict, photo, 45.0, "physical",
+                                           config=SearchConfig(resolution=4, prior=0.0, passes=passes))
+        assert found.offset == pytest.approx(steered.reference(passes), abs=1e-5), passes
+        # One network pass per light until the cycle closes, never more than allowed.
+        assert steered.predictions == min(passes, len(steered.route)), passes
+
+
+def test_a_settled_search_stops_once_the_light_moves_by_a_grid_step_or_less(monkeypatch):
+    from mideepbasis.capture import search as search_module
+
+    # From the centre one step right, then one more each pass: the light creeps, then stays.
+    steered = SteeredSearch([(1, 0), (2, 0), (3, 0)], loop_to=2)
+    monkeypatch.setattr(search_module, "light_objective", steered.objective)
+    photo = torch.zeros(3, 8, 8)
+    creeping = search_module.search_light(steered.predict, photo, 45.0, "physical",
+                                          config=SearchConfig(resolution=4, prior=0.0))
+    assert steered.predictions == 4  # three moves of one step, then the light stays
+    assert creeping.offset == pytest.approx(steered.reference(SearchConfig().passes), abs=1e-5)
+    steered.predictions = 0
+    settled = search_module.search_light(steered.predict, photo, 45.0, "physical",
+                                         config=SearchConfig(resolution=4, prior=0.0, settle_steps=1.0))
+    assert steered.predictions == 1
+    # Its material (predicted at the centre) holds the fine grid at the first step.
+    assert settled.offset == pytest.approx((steered.step, 0.0), abs=1e-5)
+    assert creeping.offset == pytest.approx((3 * steered.step, 0.0), abs=1e-5)
 
 
 def test_refinement_lowers_the_error_and_moves_only_the_global_bases():

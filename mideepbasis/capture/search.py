@@ -42,6 +42,11 @@ class SearchConfig:
     passes: int = field(default=6, metadata={"parse": positive_int})
     """Most network passes."""
 
+    settle_steps: float = 0.0
+    """The passes stop when the best candidate is within this many grid steps (per axis) of the
+    current light, the fine grid then searching around it with the last pass's material; 0: only
+    when the light does not move. Each pass is a network pass and a render of every candidate."""
+
     prior: float = 0.02
     """Weight of the squared offset [patch half-widths^2] added to the objective (mean L1), a pull
     toward the centre where the photo does not decide; 0: none. On held-out procedural materials
@@ -120,6 +125,8 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
         errors = light_objective(maps, small_photo, offsets, fov, convention, extent=extent)
         return errors + config.prior * offsets.square().sum(dim=-1)
 
+    step = 2 * geometry.max_offset(fov, config.max_offset_deg) / max(1, config.grid - 1)
+    passes = []  # (light, material at the objective's resolution, prediction) of each pass
     for index in range(config.passes):
         output = predict(photo[None], geometry.light_positions(current[None], fov))
         small_maps = downsample_maps(output.maps.cpu(), config.resolution)
@@ -127,11 +134,21 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
         best = candidates[int(torch.argmin(errors))]
         history.append({"pass": index + 1, "offset": current.tolist(), "best_candidate": best.tolist(),
                         "objective": float(errors.min())})
-        if torch.allclose(best, current, atol=1e-6):
+        passes.append((current, small_maps, output))
+        if float((best - current).abs().max()) <= config.settle_steps * step + 1e-6:
+            current = best
+            break
+        seen = next((j for j, (light, _, _) in enumerate(passes) if torch.allclose(best, light, atol=1e-6)), None)
+        if seen is not None:
+            # The passes are deterministic: from pass ``seen`` on they go round a cycle of lights (of
+            # two, nearly always) until the last pass. End where that last pass would have ended.
+            period = len(passes) - seen
+            last = seen + (config.passes - 1 - seen) % period
+            _, small_maps, output = passes[last]
+            current = passes[seen + (last + 1 - seen) % period][0]
             break
         current = best
     # A finer grid around the last candidate, with the material of the last pass.
-    step = 2 * geometry.max_offset(fov, config.max_offset_deg) / max(1, config.grid - 1)
     fine = candidate_offsets(fov, config.max_offset_deg, 9, centre=tuple(current.tolist()), span=step)
     errors = objective(small_maps, fine)
     current = fine[int(torch.argmin(errors))]
