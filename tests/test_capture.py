@@ -115,6 +115,7 @@ class SteeredSearch:
         self.route = [torch.tensor(stop, dtype=torch.float32) * self.step for stop in [(0, 0), *route]]
         self.loop_to = loop_to + 1
         self.predictions = 0
+        self.predicted_under = []
 
     def target(self, light: torch.Tensor) -> torch.Tensor:
         at = next(i for i, stop in enumerate(self.route) if torch.allclose(stop, light, atol=1e-5))
@@ -124,6 +125,7 @@ class SteeredSearch:
         from types import SimpleNamespace
 
         self.predictions += 1
+        self.predicted_under.append(lights[0, :2].clone())
         maps = torch.zeros(1, 10, 4, 4)
         maps[:, 2] = 1.0
         maps[:, 3:5] = lights[0, :2].view(1, 2, 1, 1)  # the light it was predicted under, kept in the diffuse
@@ -132,9 +134,10 @@ class SteeredSearch:
     def objective(self, maps, photo, offsets, fov, convention, extent=1.0):
         return torch.linalg.vector_norm(offsets - self.target(maps[0, 3:5, 0, 0]), dim=-1)
 
-    def reference(self, passes: int) -> tuple[float, float]:
+    def reference(self, passes: int) -> tuple[tuple[float, float], torch.Tensor]:
         """The search as documented, every pass run: the passes until the light stays, then the fine
-        grid around the last candidate with the last pass's material."""
+        grid around the last candidate with the last pass's material. Returns the offset found and
+        the light the last pass predicted under."""
         from mideepbasis.capture.search import candidate_offsets
 
         def nearest(offsets, target):
@@ -149,7 +152,7 @@ class SteeredSearch:
             current = best
         fine = candidate_offsets(self.fov, constants.MAX_OFFSET_DEG, 9, centre=tuple(current.tolist()), span=self.step)
         found = nearest(fine, self.target(predicted_under))
-        return float(found[0]), float(found[1])
+        return (float(found[0]), float(found[1])), predicted_under
 
 
 @pytest.mark.parametrize("route, loop_to", [([(3, 0), (-4, 2), (2, 5)], 0), ([(3, 0), (-4, 2), (2, 5), (0, -6)], 1),
@@ -163,7 +166,10 @@ def test_a_search_going_round_a_cycle_stops_early_where_all_its_passes_would_end
         monkeypatch.setattr(search_module, "light_objective", steered.objective)
         found = search_module.search_light(steered.predict, photo, 45.0, "physical",
                                            config=SearchConfig(resolution=4, prior=0.0, passes=passes))
-        assert found.offset == pytest.approx(steered.reference(passes), abs=1e-5), passes
+        offset, last_light = steered.reference(passes)
+        assert found.offset == pytest.approx(offset, abs=1e-5), passes
+        # Its prediction is the last pass's, as if every pass had run.
+        torch.testing.assert_close(found.output.maps[0, 3:5, 0, 0], last_light, atol=1e-5, rtol=0)
         # One network pass per light until the cycle closes, never more than allowed.
         assert steered.predictions == min(passes, len(steered.route)), passes
 
@@ -178,7 +184,7 @@ def test_a_settled_search_stops_once_the_light_moves_by_a_grid_step_or_less(monk
     creeping = search_module.search_light(steered.predict, photo, 45.0, "physical",
                                           config=SearchConfig(resolution=4, prior=0.0))
     assert steered.predictions == 4  # three moves of one step, then the light stays
-    assert creeping.offset == pytest.approx(steered.reference(SearchConfig().passes), abs=1e-5)
+    assert creeping.offset == pytest.approx(steered.reference(SearchConfig().passes)[0], abs=1e-5)
     steered.predictions = 0
     settled = search_module.search_light(steered.predict, photo, 45.0, "physical",
                                          config=SearchConfig(resolution=4, prior=0.0, settle_steps=1.0))
@@ -186,6 +192,13 @@ def test_a_settled_search_stops_once_the_light_moves_by_a_grid_step_or_less(monk
     # Its material (predicted at the centre) holds the fine grid at the first step.
     assert settled.offset == pytest.approx((steered.step, 0.0), abs=1e-5)
     assert creeping.offset == pytest.approx((3 * steered.step, 0.0), abs=1e-5)
+    # A move of two steps along one axis is not settled: the passes go on to where the light stays.
+    leaping = SteeredSearch([(1, 2), (1, 3)], loop_to=1)
+    monkeypatch.setattr(search_module, "light_objective", leaping.objective)
+    found = search_module.search_light(leaping.predict, photo, 45.0, "physical",
+                                       config=SearchConfig(resolution=4, prior=0.0, settle_steps=1.0))
+    assert leaping.predictions == 2
+    assert found.offset == pytest.approx((leaping.step, 3 * leaping.step), abs=1e-5)
 
 
 def test_refinement_lowers_the_error_and_moves_only_the_global_bases():

@@ -65,7 +65,7 @@ def default_workers(photos: int) -> int:
     return max(1, min(photos, os.cpu_count() or 1))
 
 
-def _start_worker(model, config, options: SaveOptions) -> None:
+def _start_worker(model, config, options: SaveOptions, workers: int) -> None:
     import signal
 
     import drjit as dr
@@ -75,11 +75,14 @@ def _start_worker(model, config, options: SaveOptions) -> None:
 
     # Ctrl-C is the main process's to handle: it stops the workers itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # One core each for torch: the workers, not the threads inside them, share the machine.
+    # A share of the cores each for torch (one, with a worker per core): the workers, not the
+    # threads inside them, share the machine.
     # (drjit keeps its pool: Mitsuba's path tracer waits forever on a pool of one thread.)
-    torch.set_num_threads(1)
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
     _WORKER["capturer"] = Capturer(model, config)
     _WORKER["drjit_threads"] = dr.thread_count()
+    # With fewer workers than cores (a batch of one photo), the capture keeps its share of them.
+    _WORKER["capture_threads"] = max(1, _WORKER["drjit_threads"] // workers)
     _WORKER["options"] = options
 
 
@@ -96,7 +99,7 @@ def _capture_one(photo: Path, target: Path) -> BatchItem:
         # for the first, and with two workers on two cores that waiting is the other photo's time
         # (1.1 against 1.5 CPU-s a capture). The writing's path tracing keeps the pool: it divides
         # well, and Mitsuba's scene loading never returns on a pool of one thread.
-        dr.set_thread_count(1)
+        dr.set_thread_count(_WORKER["capture_threads"])
         try:
             result = _WORKER["capturer"].capture(photo)
         finally:
@@ -162,7 +165,7 @@ def _run_batch(photos: list[Path], out: Path, model, config, options: SaveOption
     # spawn, not fork: drjit's and torch's thread pools do not survive a fork.
     context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_start_worker,
-                               initargs=(model, config, options))
+                               initargs=(model, config, options, workers))
     try:
         # At most two photos queued per worker: results come back in order of completion.
         queue = iter(photos)

@@ -162,11 +162,11 @@ def generate_surface(seed: int, config: GeneratorConfig = GeneratorConfig(),
     diffuse, roughness = surface.diffuse, surface.roughness
     if canvas.chance(config.gloss_probability):
         factor = canvas.loguniform(*config.gloss_scale)
-        roughness = np.clip(roughness, 0, 1) * factor  # the roughness as the material would have had it
+        roughness = np.clip(roughness, 0, 1) * factor  # of the values the material would have had
         provenance["roughness_factor"] = factor
     if canvas.chance(config.darkening_probability):
         factor = canvas.loguniform(*config.darkening_scale)
-        diffuse = diffuse * factor
+        diffuse = np.clip(diffuse, 0, 1) * factor
         provenance["diffuse_factor"] = factor
     surface = Surface(height, diffuse, roughness, surface.specular, surface.variant).clipped()
     return surface, height_to_normal(surface.height, config.tileable), provenance
