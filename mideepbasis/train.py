@@ -197,6 +197,13 @@ class TrainConfig:
     local_pool_refresh: int = field(default=1, metadata={"parse": positive_int})
     """Materials of the local pool replaced by new ones each step."""
 
+    local_pool_keep: tuple[str, ...] = ()
+    """Maps (``KEEPABLE_MAPS``) the local unit alone keeps as the run's start (``init``) gives them:
+    on their channels the target is not the true map but the map of the network with the init's
+    local unit, so the unit learns the other maps without moving these. Trained alone on
+    procedural materials the unit trades the roughness for the diffuse on the shared test set
+    (MODEL.md); kept, the roughness cannot drift. Costs one more local-unit pass a step."""
+
     normal_pool_loss: str = field(default="mse", metadata={"choices": ("mse", "crop_rmse")})
     """Loss of the normal pool (``normal_unit_loss``): ``mse``, the mean squared error over the
     batch; ``crop_rmse``, the mean over crops of each crop's RMSE, as ``evaluate`` averages the
@@ -246,6 +253,11 @@ class TrainConfig:
             if self.network.normal_unit_albedo:
                 raise ValueError("local_pool cannot train under a normal unit that reads the albedo shading "
                                  "(its slope would follow the local unit being trained)")
+        unknown = [name for name in self.local_pool_keep if name not in KEEPABLE_MAPS]
+        if unknown:
+            raise ValueError(f"local_pool_keep: unknown maps {unknown}; known: {list(KEEPABLE_MAPS)}")
+        if self.local_pool_keep and not (self.local_pool and self.init):
+            raise ValueError("local_pool_keep keeps maps as the init gives them: it needs local_pool and init")
 
     @classmethod
     def from_dict(cls, values: dict, source: str = "checkpoint", network: dict | None = None) -> TrainConfig:
@@ -275,6 +287,10 @@ def _fields(values: dict | None) -> dict:
 #: loads everything else and starts the local unit afresh.
 LOCAL_UNIT_FIELDS = ("local_width", "local_encoder_blocks", "local_middle_blocks", "local_decoder_blocks",
                      "local_ending_kernel")
+
+#: Maps ``local_pool_keep`` may name, and their channels.
+KEEPABLE_MAPS = {"normal": constants.NORMAL, "diffuse": constants.DIFFUSE, "roughness": constants.ROUGHNESS,
+                 "specular": constants.SPECULAR}
 
 #: Parts of DeepBasisNet (its top-level modules) that ``train_only`` may name.
 TRAINABLE_PARTS = ("encoder", "weight_decoder", "global_unit", "local_unit", "normal_unit")
@@ -548,9 +564,12 @@ def channel_weights(normal_weight: float, device=None) -> torch.Tensor:
     return (weights * 10 / weights.sum()).view(1, 10, 1, 1)
 
 
-def supervised_loss(output: DeepBasisOutput, maps: torch.Tensor, normal_weight: float = 1.0) -> torch.Tensor:
-    """(Weighted) L1 between the predicted blend and the ground truth, in signed space."""
-    difference = (output.signed_maps - to_signed(maps)).abs()
+def supervised_loss(output: DeepBasisOutput, maps: torch.Tensor, normal_weight: float = 1.0,
+                    signed_target: torch.Tensor | None = None) -> torch.Tensor:
+    """(Weighted) L1 between the predicted blend and the ground truth ``maps`` (or, given, the
+    target already in signed space), in signed space."""
+    target = to_signed(maps) if signed_target is None else signed_target
+    difference = (output.signed_maps - target).abs()
     return (difference * channel_weights(normal_weight, maps.device)).mean()
 
 
@@ -733,6 +752,12 @@ class Trainer:
         self._validation_batches = {}
         if config.init and not resume:
             self._initialise_from(config.init)
+        # The local unit the kept maps come from: the init's, also when the run resumes.
+        self.kept_from = None
+        if config.local_pool_keep:
+            from .model.checkpoint import load_model
+
+            self.kept_from = load_model(config.init).to(self.device).eval().requires_grad_(False)
         if resume:
             self._resume()
         if self.world_size > 1:
@@ -920,7 +945,17 @@ class Trainer:
             deviations = model.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
         change = slope_change(batch.slope.to(self.device))
         output = DeepBasisOutput.from_bases(weights, global_bases, deviations.float() + change[:, None], keep_bases=False)
-        sup = supervised_loss(output, maps, config.normal_weight)
+        signed_target = None
+        if self.kept_from is not None:
+            with torch.no_grad():
+                kept = self.kept_from.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
+                kept = DeepBasisOutput.from_bases(weights, global_bases, kept + change[:, None], keep_bases=False)
+            # The blend itself (signed space) for the map loss, its maps for the rendering loss.
+            maps, signed_target = maps.clone(), to_signed(maps)
+            for name in config.local_pool_keep:
+                channels = KEEPABLE_MAPS[name]
+                maps[:, channels], signed_target[:, channels] = kept.maps[:, channels], kept.signed_maps[:, channels]
+        sup = supervised_loss(output, maps, config.normal_weight, signed_target)
         loss, losses = self._with_rendering_loss(sup, output.maps, maps)
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": 0.0, "l_saturation": 0.0, **losses,

@@ -596,3 +596,54 @@ def test_the_local_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path)
         local_pool_config(tmp_path, normal_pool=3)
     with pytest.raises(ValueError, match="reads the albedo shading"):
         local_pool_config(tmp_path, network={"normal_unit_width": 4, "normal_unit_albedo": True})
+
+
+def test_the_local_unit_keeps_the_maps_it_is_told_to_as_its_init_gives_them(tmp_path):
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+    from mideepbasis.train import KEEPABLE_MAPS
+
+    torch.manual_seed(0)
+    source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny", normal_unit_width=4)))
+
+    def trained(name, keep, steps=40):
+        trainer = Trainer(local_pool_config(tmp_path / name, init=str(source), steps=steps, batch=3,
+                                            local_pool_keep=keep), progress=False)
+        batch = next(trainer.pool_batches())
+        first = trainer.train_step(batch)["loss"]
+        for _ in range(steps - 1):
+            trainer.train_step(batch)
+        model = trainer.model
+        with torch.no_grad():
+            deviations = model.local_deviations(batch.local_inputs, batch.weights, batch.global_bases)
+            change = torch.cat([batch.slope, torch.zeros(3, 8, *batch.slope.shape[-2:])], 1)[:, None]
+            maps = DeepBasisOutput.from_bases(batch.weights, batch.global_bases, deviations + change, keep_bases=False).maps
+        return first, maps, batch.maps
+
+    # Every map kept: the init's own maps are the target, so the first loss is nothing.
+    first, _, _ = trained("all", tuple(KEEPABLE_MAPS), steps=1)
+    assert first < 1e-6
+    # Roughness and specular kept: they stay near the init's while the diffuse learns the truth.
+    _, start, truth = trained("start", (), steps=1)  # one step from the init: (nearly) the init's maps
+    _, kept, _ = trained("kept", ("roughness", "specular"))
+    _, free, _ = trained("free", ())
+
+    def moved(maps, channels):
+        return float((maps[:, channels] - start[:, channels]).abs().mean())
+
+    rough_and_specular = [6, 7, 8, 9]
+    assert moved(kept, rough_and_specular) < 0.5 * moved(free, rough_and_specular)
+    diffuse_error = [float((m[:, 3:6] - truth[:, 3:6]).abs().mean()) for m in (start, kept)]
+    assert diffuse_error[1] < 0.9 * diffuse_error[0], diffuse_error
+    # A resumed run keeps what the init gives, not what its checkpoint holds.
+    config = local_pool_config(tmp_path / "resumed", init=str(source), steps=4, local_pool_keep=("roughness",))
+    Trainer(config, progress=False).run()
+    resumed = Trainer(config, resume=True, progress=False)
+    assert resumed.step == 4
+    reference = load_model(source).state_dict()
+    for name, value in resumed.kept_from.state_dict().items():
+        torch.testing.assert_close(value, reference[name])
+    with pytest.raises(ValueError, match="unknown maps"):
+        local_pool_config(tmp_path, init=str(source), local_pool_keep=("gloss",))
+    with pytest.raises(ValueError, match="needs local_pool and init"):
+        local_pool_config(tmp_path, local_pool_keep=("roughness",))
