@@ -126,7 +126,7 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
         return errors + config.prior * offsets.square().sum(dim=-1)
 
     step = 2 * geometry.max_offset(fov, config.max_offset_deg) / max(1, config.grid - 1)
-    passes = []  # (light, material at the objective's resolution, prediction) of each pass
+    passes = []  # (light, material at the objective's resolution) of each pass; the latest prediction alone
     for index in range(config.passes):
         output = predict(photo[None], geometry.light_positions(current[None], fov))
         small_maps = downsample_maps(output.maps.cpu(), config.resolution)
@@ -134,17 +134,19 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
         best = candidates[int(torch.argmin(errors))]
         history.append({"pass": index + 1, "offset": current.tolist(), "best_candidate": best.tolist(),
                         "objective": float(errors.min())})
-        passes.append((current, small_maps, output))
+        passes.append((current, small_maps))
         if float((best - current).abs().max()) <= config.settle_steps * step + 1e-6:
             current = best
             break
-        seen = next((j for j, (light, _, _) in enumerate(passes) if torch.allclose(best, light, atol=1e-6)), None)
+        seen = next((j for j, (light, _) in enumerate(passes) if torch.allclose(best, light, atol=1e-6)), None)
         if seen is not None:
             # The passes are deterministic: from pass ``seen`` on they go round a cycle of lights (of
             # two, nearly always) until the last pass. End where that last pass would have ended.
             period = len(passes) - seen
             last = seen + (config.passes - 1 - seen) % period
-            _, small_maps, output = passes[last]
+            light, small_maps = passes[last]
+            if last != len(passes) - 1:  # its prediction again, rather than every pass's held (60 MB at 256 px)
+                output = predict(photo[None], geometry.light_positions(light[None], fov))
             current = passes[seen + (last + 1 - seen) % period][0]
             break
         current = best
