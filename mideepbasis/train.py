@@ -227,6 +227,7 @@ class TrainConfig:
         if not self.data:
             raise ValueError("no material sources (data): give procedural and/or folders")
         self.train_only = tuple(self.train_only)
+        self.local_pool_keep = tuple(self.local_pool_keep)
         unknown = sorted(set(self.train_only) - set(TRAINABLE_PARTS))
         if unknown:
             raise ValueError(f"unknown network parts {unknown} to train; expected some of {list(TRAINABLE_PARTS)}")
