@@ -198,7 +198,7 @@ class TrainConfig:
     """Materials of the local pool replaced by new ones each step."""
 
     local_pool_keep: tuple[str, ...] = ()
-    """Maps (``KEEPABLE_MAPS``) the local unit alone keeps as the run's start (``init``) gives them:
+    """Maps (``constants.MAP_SLICES``: normal, diffuse, roughness, specular) the local unit alone keeps as the run's start (``init``) gives them:
     on their channels the target is not the true map but the map of the network with the init's
     local unit, so the unit learns the other maps without moving these. Trained alone on
     procedural materials the unit trades the roughness for the diffuse on the shared test set
@@ -254,9 +254,9 @@ class TrainConfig:
             if self.network.normal_unit_albedo:
                 raise ValueError("local_pool cannot train under a normal unit that reads the albedo shading "
                                  "(its slope would follow the local unit being trained)")
-        unknown = [name for name in self.local_pool_keep if name not in KEEPABLE_MAPS]
+        unknown = [name for name in self.local_pool_keep if name not in constants.MAP_SLICES]
         if unknown:
-            raise ValueError(f"local_pool_keep: unknown maps {unknown}; known: {list(KEEPABLE_MAPS)}")
+            raise ValueError(f"local_pool_keep: unknown maps {unknown}; known: {list(constants.MAP_SLICES)}")
         if self.local_pool_keep and not (self.local_pool and self.init):
             raise ValueError("local_pool_keep keeps maps as the init gives them: it needs local_pool and init")
 
@@ -288,10 +288,6 @@ def _fields(values: dict | None) -> dict:
 #: loads everything else and starts the local unit afresh.
 LOCAL_UNIT_FIELDS = ("local_width", "local_encoder_blocks", "local_middle_blocks", "local_decoder_blocks",
                      "local_ending_kernel")
-
-#: Maps ``local_pool_keep`` may name, and their channels.
-KEEPABLE_MAPS = {"normal": constants.NORMAL, "diffuse": constants.DIFFUSE, "roughness": constants.ROUGHNESS,
-                 "specular": constants.SPECULAR}
 
 #: Parts of DeepBasisNet (its top-level modules) that ``train_only`` may name.
 TRAINABLE_PARTS = ("encoder", "weight_decoder", "global_unit", "local_unit", "normal_unit")
@@ -945,16 +941,19 @@ class Trainer:
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=config.bf16):
             deviations = model.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
         change = slope_change(batch.slope.to(self.device))
-        output = DeepBasisOutput.from_bases(weights, global_bases, deviations.float() + change[:, None], keep_bases=False)
+
+        def blended(local_deviations: torch.Tensor) -> DeepBasisOutput:  # the normal unit's slope added
+            return DeepBasisOutput.from_bases(weights, global_bases, local_deviations + change[:, None], keep_bases=False)
+
+        output = blended(deviations.float())
         signed_target = None
         if self.kept_from is not None:
             with torch.no_grad():
-                kept = self.kept_from.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
-                kept = DeepBasisOutput.from_bases(weights, global_bases, kept + change[:, None], keep_bases=False)
+                kept = blended(self.kept_from.local_deviations(batch.local_inputs.to(self.device), weights, global_bases))
             # The blend itself (signed space) for the map loss, its maps for the rendering loss.
             maps, signed_target = maps.clone(), to_signed(maps)
             for name in config.local_pool_keep:
-                channels = KEEPABLE_MAPS[name]
+                channels = constants.MAP_SLICES[name]
                 maps[:, channels], signed_target[:, channels] = kept.maps[:, channels], kept.signed_maps[:, channels]
         sup = supervised_loss(output, maps, config.normal_weight, signed_target)
         loss, losses = self._with_rendering_loss(sup, output.maps, maps)

@@ -601,7 +601,7 @@ def test_the_local_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path)
 def test_the_local_unit_keeps_the_maps_it_is_told_to_as_its_init_gives_them(tmp_path):
     from mideepbasis.model.checkpoint import save_checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
-    from mideepbasis.train import KEEPABLE_MAPS
+    from mideepbasis import constants
 
     torch.manual_seed(0)
     source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny", normal_unit_width=4)))
@@ -621,7 +621,7 @@ def test_the_local_unit_keeps_the_maps_it_is_told_to_as_its_init_gives_them(tmp_
         return first, maps, batch.maps
 
     # Every map kept: the init's own maps are the target, so the first loss is nothing.
-    first, _, _ = trained("all", tuple(KEEPABLE_MAPS), steps=1)
+    first, _, _ = trained("all", tuple(constants.MAP_SLICES), steps=1)
     assert first < 1e-6
     # Roughness and specular kept: they stay near the init's while the diffuse learns the truth.
     _, start, truth = trained("start", (), steps=1)  # one step from the init: (nearly) the init's maps
