@@ -77,3 +77,20 @@ def run_generator_settings(path: Path) -> dict:
     if not isinstance(procedural, dict):
         raise SystemExit(f"{path}: its procedural settings are {procedural!r}, not a table of settings")
     return {key: tuple(value) if isinstance(value, list) else value for key, value in procedural.items()}
+
+
+def shared_predictions(model):
+    """The shared test set's true maps (N, 10, H, W), ``evaluate``'s seeded hand-held offsets (N, 2)
+    [patch half-widths] and ``model``'s maps (N, 10, H, W) predicted as ``evaluate``'s default
+    protocol makes them (light known, no refinement, the network at its training resolution)."""
+    from mideepbasis import constants
+    from mideepbasis.evaluation.protocol import evaluation_offsets, load_evaluation_materials
+    from mideepbasis.evaluation.run import _predict_all
+
+    if not SHARED_TEST.is_dir():
+        raise SystemExit(f"{SHARED_TEST} is absent")
+    fov = constants.DEFAULT_FOV_DEG
+    truth = load_evaluation_materials(SHARED_TEST, "deschaintre5").maps
+    offsets = evaluation_offsets(len(truth), 0, fov)
+    predicted, _, _ = _predict_all(model, truth, offsets, fov, "known", 0, True, "model")
+    return truth, offsets, predicted

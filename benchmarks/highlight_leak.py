@@ -29,12 +29,10 @@ import mideepbasis  # noqa: F401
 import numpy as np
 import torch
 import torch.nn.functional as F
-from common import RESULTS, SHARED_TEST, write_report
+from common import RESULTS, shared_predictions, write_report
 
 from mideepbasis import constants, geometry
 from mideepbasis.capture import CaptureConfig, Capturer
-from mideepbasis.evaluation.protocol import evaluation_offsets, load_evaluation_materials
-from mideepbasis.evaluation.run import _predict_all
 from mideepbasis.material import Material
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.render.api import example_capture_dir
@@ -74,14 +72,10 @@ def main() -> None:
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "highlight_leak.json")
     args = parser.parse_args()
-    if not SHARED_TEST.is_dir():
-        raise SystemExit(f"{SHARED_TEST} is absent")
 
     model = load_model(args.model)
     fov, convention = constants.DEFAULT_FOV_DEG, model.config.convention
-    truth = load_evaluation_materials(SHARED_TEST, "deschaintre5").maps
-    offsets = evaluation_offsets(len(truth), 0, fov)
-    predicted, _, _ = _predict_all(model, truth, offsets, fov, "known", 0, True, "model")
+    truth, offsets, predicted = shared_predictions(model)
     leak, albedo_leak, _ = highlight_leak(predicted, truth, geometry.light_positions(offsets, fov), fov, convention,
                                           model.config.plane_extent)
     measured = torch.isfinite(leak)

@@ -19,13 +19,11 @@ from pathlib import Path
 
 import mideepbasis  # noqa: F401
 import torch
-from common import RESULTS, SHARED_TEST, write_report
+from common import RESULTS, shared_predictions, write_report
 
 from mideepbasis import constants
 from mideepbasis.evaluation.metrics import rerender_rmse
-from mideepbasis.evaluation.protocol import (RERENDER_COUNT, evaluation_offsets, load_evaluation_materials,
-                                             random_lights_and_views)
-from mideepbasis.evaluation.run import _predict_all
+from mideepbasis.evaluation.protocol import RERENDER_COUNT, random_lights_and_views
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.train import flat_normals
 
@@ -35,13 +33,10 @@ def main() -> None:
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "rerender_attribution.json")
     args = parser.parse_args()
-    if not SHARED_TEST.is_dir():
-        raise SystemExit(f"{SHARED_TEST} is absent")
 
-    truth = load_evaluation_materials(SHARED_TEST, "deschaintre5").maps
     model = load_model(args.model)
-    fov, convention = constants.DEFAULT_FOV_DEG, model.config.convention
-    predicted, _, _ = _predict_all(model, truth, evaluation_offsets(len(truth), 0, fov), fov, "known", 0, True, "model")
+    truth, _, predicted = shared_predictions(model)
+    convention = model.config.convention
     lights, views = random_lights_and_views(RERENDER_COUNT, 0)
 
     def error(maps: torch.Tensor) -> float:
