@@ -213,7 +213,7 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     ``shape_previews`` is False: two path-traced images fewer, about 1.8 s of a capture's 4 on two cores).
     """
     from .render import render_flash
-    from .render.scenes import preview_scene, render, shape_scene
+    from .render.scenes import preview_maps, preview_scene, render, shape_scene
     from .reporting import capture_report
 
     out = Path(out)
@@ -245,16 +245,17 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
             write_image(staging / "photo.png", _hwc(result.photo).clip(0, 1), encode_srgb=True)
             write_image(staging / "rerender.png", _hwc(rerender).clip(0, 1), encode_srgb=True)
             write_image(staging / "error.png", (_hwc(error) * 4).clip(0, 1), encode_srgb=True)
-            scene = preview_scene(maps[0], environment=environment, spp=environment_spp, convention=material.convention,
+            shown = preview_maps(maps[0])
+            scene = preview_scene(shown, environment=environment, spp=environment_spp, convention=material.convention,
                                   sampler=environment_sampler)
             environment_image = render(scene, progress=progress)
             write_image(staging / "environment.png", environment_image.clip(0, 1), encode_srgb=True)
             for shape in ("sphere", "cloth") if shape_previews else ():
-                preview = render(shape_scene(maps[0], shape, environment, tiles=preview_tiles, spp=shape_spp,
+                preview = render(shape_scene(shown, shape, environment, tiles=preview_tiles, spp=shape_spp,
                                              convention=material.convention))
                 write_image(staging / f"preview_{shape}.png", preview.clip(0, 1), encode_srgb=True)
             if truth is not None:
-                truth_scene = preview_scene(truth.to_tensor(), environment=environment, spp=environment_spp,
+                truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment, spp=environment_spp,
                                             convention=material.convention, sampler=environment_sampler)
                 truth_image = render(truth_scene, progress=progress)  # the capture's seed: correlated noise
                 write_image(staging / "environment_truth.png", truth_image.clip(0, 1), encode_srgb=True)

@@ -373,6 +373,24 @@ def test_write_errors_write_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []  # not even the parent folder
 
 
+def test_images_are_copied_to_float32_as_numpy_would_and_kept_from_later_changes(tmp_path):
+    rng = np.random.default_rng(3)
+    chw = rng.uniform(-0.5, 1.5, (3, 5, 7))
+    inputs = {
+        "permuted float64 array": chw.copy().transpose(1, 2, 0),
+        "mirrored array (negative strides)": chw.copy().transpose(1, 2, 0)[:, ::-1],
+        "permuted float16 tensor": torch.from_numpy(chw.copy()).half().permute(1, 2, 0),
+        "float64 tensor": torch.from_numpy(chw[0].copy()),
+    }
+    for name, image in inputs.items():
+        expected = np.asarray(image.numpy() if isinstance(image, torch.Tensor) else image).astype(np.float32)
+        copy = imageio._as_hwc(tmp_path / "x.png", image)
+        assert copy.dtype == np.float32 and copy.flags.c_contiguous, name
+        np.testing.assert_array_equal(copy.reshape(expected.shape), expected, err_msg=name)
+        image[...] = 0  # the caller's data changes while the write may still be pending
+        np.testing.assert_array_equal(copy.reshape(expected.shape), expected, err_msg=name)
+
+
 def test_write_creates_parents_and_leaves_no_temporary_files(tmp_path):
     for suffix, bit_depth in ROUND_TRIP_TOL:
         write_image(tmp_path / "a" / "b" / f"img{bit_depth}.{suffix}", smooth_image(), bit_depth=bit_depth)
