@@ -137,3 +137,20 @@ def test_the_normal_unit_adds_its_slope_to_the_normal_deviation_of_every_basis()
     assert torch.equal(c.deviations, a.deviations) and torch.equal(c.maps, a.maps)
     with pytest.raises(ValueError, match="needs use_bases and use_local"):
         preset("tiny", normal_unit_width=4, use_local=False)
+
+
+@pytest.mark.parametrize("size", [(128, 100), (128, 128), (120, 96), (48, 40)])
+def test_maps_built_in_bands_are_the_upsampled_outputs(monkeypatch, size):
+    """Bands of 24 rows (not a multiple of the 8x upsampling) against the whole upsampled output;
+    120 and 48 rows (7.5x and 3x) take the unbanded path."""
+    from mideepbasis.model import network
+
+    torch.manual_seed(2)
+    weights = normalize_weights(torch.rand(2, 4, 16, 12) * 2 - 1)
+    output = network.DeepBasisOutput.from_bases(weights, torch.rand(2, 4, 10) * 2 - 1,
+                                                (torch.rand(2, 4, 10, 16, 12) * 2 - 1) * 0.5, keep_bases=False)
+    whole = output.upsample(*size).maps
+    assert torch.equal(output.maps_at(*size), whole)  # one band of every row
+    monkeypatch.setattr(network, "BAND_PIXELS", 24 * size[1])
+    torch.testing.assert_close(output.maps_at(*size), whole, rtol=0.0, atol=1e-6)
+    assert network.exact_in_bands(16, size[0]) == (size[0] == 128)
