@@ -512,10 +512,10 @@ def _as_hwc(path: Path, image: np.ndarray | torch.Tensor) -> np.ndarray:
     changes its data), checked."""
     if isinstance(image, torch.Tensor):
         image = image.detach().cpu()
-        floating = image.is_floating_point()
+        floating, dtype = image.is_floating_point(), str(image.dtype).removeprefix("torch.")
     else:
         image = np.asarray(image)
-        floating = np.issubdtype(image.dtype, np.floating)
+        floating, dtype = np.issubdtype(image.dtype, np.floating), image.dtype
     if image.ndim == 2:
         image = image[..., None]
     if image.ndim != 3 or image.shape[2] not in (1, 3) or 0 in image.shape:
@@ -524,17 +524,20 @@ def _as_hwc(path: Path, image: np.ndarray | torch.Tensor) -> np.ndarray:
             f"got {tuple(image.shape)}"
         )
     if not floating:
-        raise ImageIOError(f"cannot write '{path}': expected floating-point values, got {image.dtype}")
-    image = _float32_copy(image)
-    if not np.isfinite(image).all():
+        raise ImageIOError(f"cannot write '{path}': expected floating-point values, got {dtype}")
+    finite = bool(torch.isfinite(image).all()) if isinstance(image, torch.Tensor) else bool(np.isfinite(image).all())
+    if not finite:  # before the cast: a finite value beyond float32's range stays writable (PNG clips it)
         raise ImageIOError(f"cannot write '{path}': image contains NaN or infinite values")
-    return image
+    with np.errstate(over="ignore"):
+        return _float32_copy(image)
 
 
 def _float32_copy(image: np.ndarray | torch.Tensor) -> np.ndarray:
     """A C-ordered float32 copy. Maps arrive as permuted (C, H, W) views: torch copies those on
     every core, NumPy's astype on one and strided (0.08 s a 2048 px map)."""
     if isinstance(image, np.ndarray):
+        if not image.flags.writeable:  # torch warns of those (it only reads here)
+            return np.array(image, dtype=np.float32, order="C")
         try:
             image = torch.from_numpy(image)
         except (TypeError, ValueError):  # negative strides, or a float type torch lacks
