@@ -423,7 +423,7 @@ def test_failed_write_keeps_existing_file(tmp_path, monkeypatch, suffix, bit_dep
 
         monkeypatch.setattr(imageio.OpenEXR, "File", FailingFile)
     elif bit_depth == 16:
-        monkeypatch.setattr(imageio.cv2, "imencode", lambda *a: (False, None))
+        monkeypatch.setattr(cv2, "imencode", lambda *a: (False, None))
     else:
         monkeypatch.setattr(Image.Image, "save", lambda self, fp, *a, **k: _fail_after_writing(0)(fp))
     with pytest.raises(ImageIOError, match=f"cannot write '.*keep.{suffix}'") as exc:
