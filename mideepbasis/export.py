@@ -28,6 +28,7 @@ import math
 import os
 import shutil
 import struct
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -247,32 +248,45 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
             write_image(staging / "rerender.png", _hwc(rerender.clamp(0, 1)), encode_srgb=True)
             write_image(staging / "error.png", _hwc((error * 4).clamp(0, 1)), encode_srgb=True)
             shown = preview_maps(maps[0])
-            scene = preview_scene(shown, environment=environment, spp=environment_spp, convention=material.convention,
-                                  sampler=environment_sampler)
-            environment_image = render(scene, progress=progress)
-            write_image(staging / "environment.png", environment_image.clip(0, 1), encode_srgb=True)
-            for shape in ("sphere", "cloth") if shape_previews else ():
-                preview = render(shape_scene(shown, shape, environment, tiles=preview_tiles, spp=shape_spp,
-                                             convention=material.convention))
-                write_image(staging / f"preview_{shape}.png", preview.clip(0, 1), encode_srgb=True)
+
+            def path_trace() -> dict[str, np.ndarray]:
+                """The previews, linear (H, W, 3), by the name of their file."""
+                scene = preview_scene(shown, environment=environment, spp=environment_spp,
+                                      convention=material.convention, sampler=environment_sampler)
+                images = {"environment": render(scene, progress=progress)}
+                for shape in ("sphere", "cloth") if shape_previews else ():
+                    images[f"preview_{shape}"] = render(shape_scene(shown, shape, environment, tiles=preview_tiles,
+                                                                    spp=shape_spp, convention=material.convention))
+                if truth is not None:
+                    truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
+                                                spp=environment_spp, convention=material.convention,
+                                                sampler=environment_sampler)
+                    images["environment_truth"] = render(truth_scene, progress=progress)  # the same seed
+                return images
+
+            # drjit lets go of the GIL while it path traces: the conversions and exports below run
+            # beside it (drjit is used by this thread alone meanwhile).
+            with ThreadPoolExecutor(max_workers=1) as tracer:
+                traced = tracer.submit(path_trace)
+                (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width,
+                                                             material.convention))
+                pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
+                gltf = gltf_material(material, staging, pbr=pbr)
+                write_bytes(staging / "material.gltf", _json_bytes(gltf))
+                from .interchange import usd_available, write_materialx, write_usd
+
+                # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
+                write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
+                if usd_available():
+                    write_usd(staging)
+                images = traced.result()
+            for name, image in images.items():
+                write_image(staging / f"{name}.png", image.clip(0, 1), encode_srgb=True)
+            environment_image = images["environment"]
             if truth is not None:
-                truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment, spp=environment_spp,
-                                            convention=material.convention, sampler=environment_sampler)
-                truth_image = render(truth_scene, progress=progress)  # the capture's seed: correlated noise
-                write_image(staging / "environment_truth.png", truth_image.clip(0, 1), encode_srgb=True)
-                difference = np.abs(linear_to_srgb(truth_image.clip(0, 1)) - linear_to_srgb(environment_image.clip(0, 1)))
+                difference = np.abs(linear_to_srgb(images["environment_truth"].clip(0, 1))
+                                    - linear_to_srgb(environment_image.clip(0, 1)))
                 write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
-
-            (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width, material.convention))
-            pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
-            gltf = gltf_material(material, staging, pbr=pbr)
-            write_bytes(staging / "material.gltf", _json_bytes(gltf))
-            from .interchange import usd_available, write_materialx, write_usd
-
-            # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
-            write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
-            if usd_available():
-                write_usd(staging)
         # The report reads the written maps (its relighting viewer embeds them): after the writes.
         capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,
                        rerender_rmse=float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt()))
