@@ -1,0 +1,113 @@
+"""Ways to run a trained normal unit at inference, on held-out procedural materials and the shared 84.
+
+    .venv/bin/python benchmarks/normal_inference.py [--model CKPT] [--procedural 48] [--gains 1 1.2 1.4 1.7]
+
+Two questions, each answered first on procedural materials (held-out seeds 3e9 + 900 on, the
+generator of ``--run-config``, 256 px, seeded hand-held offsets) and then on the shared test set
+(``evaluate``'s default protocol: its seeded offsets, light known, the network at its training
+resolution). Only measured, never trained on. Normal RMSE in the stored encoding.
+
+- **Gain**: the unit's output before its tanh multiplied by G. An MSE-trained unit that had
+  converged would score best at G = 1 on its own distribution; a best G above 1 says its relief
+  comes out too weak.
+- **Resolution**: the unit run on the photo at its own 256 px (its slope added to the upsampled
+  deviations) instead of at the network's 128 px (its slope upsampled with them), and the mean of
+  the two slopes.
+
+Writes benchmarks/results/normal_inference.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import mideepbasis  # noqa: F401
+import torch
+import torch.nn.functional as F
+from common import RESULTS, SHARED_TEST, run_generator_settings, write_report
+from normal_bands import flat_normals, stored_rmse
+
+from mideepbasis import constants
+from mideepbasis.data.procedural import GeneratorConfig, generate
+from mideepbasis.evaluation.protocol import evaluation_offsets, flash_photos, load_evaluation_materials
+from mideepbasis.model.checkpoint import load_model
+from mideepbasis.model.inputs import encode_inputs, relief_inputs
+from mideepbasis.model.network import DeepBasisOutput, slope_change, upsample_bilinear
+
+
+def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float, variants: dict) -> dict:
+    """The predicted unit normals (1, 3, H, W) of a photo (1, 3, H, W) at the photo's size for each
+    variant (gain, where): the unit's raw output times the gain, its slope from the network's
+    resolution (``network``), the photo's (``photo``) or their mean (``mean``). The rest of the
+    network runs once."""
+    config = model.config
+    size = photo.shape[-1]
+    small = F.interpolate(photo, size=(128, 128), mode="area") if size > 128 else photo
+    inputs = encode_inputs(small, light, fov, config.convention, config.plane_extent, config.extra_inputs)
+    stage = model.basis_stage(inputs, light, fov)
+    deviations = model.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
+    weights = upsample_bilinear(stage.weights, size, size)
+    upsampled = torch.stack([upsample_bilinear(d, size, size) for d in deviations.unbind(1)], dim=1)
+    reliefs = {"network": relief_inputs(stage.photo.float(), light, fov, config.convention, config.plane_extent),
+               "photo": relief_inputs(photo.clamp(0, 1), light, fov, config.convention, config.plane_extent)}
+    raw = {where: model.normal_unit(relief) for where, relief in reliefs.items()}
+
+    def slope(gain: float, where: str) -> torch.Tensor:
+        if where == "mean":
+            return 0.5 * (slope(gain, "network") + slope(gain, "photo"))
+        return upsample_bilinear(torch.tanh(gain * raw[where]), size, size)
+
+    normals = {}
+    for name, (gain, where) in variants.items():
+        output = DeepBasisOutput.from_bases(weights, stage.global_bases,
+                                            upsampled + slope_change(slope(gain, where))[:, None], keep_bases=False)
+        normals[name] = output.maps[:, constants.NORMAL]
+    return normals
+
+
+def score(model, maps: torch.Tensor, offsets: torch.Tensor, fov: float, variants: dict) -> dict:
+    truth = maps[:, constants.NORMAL]
+    predicted = {name: [] for name in variants}
+    with torch.no_grad():
+        for index in range(len(maps)):
+            photo, light = flash_photos(maps[index:index + 1], offsets[index:index + 1], fov, model.config.convention,
+                                        model.config.plane_extent)
+            for name, normals in variant_normals(model, photo, light, fov, variants).items():
+                predicted[name].append(normals)
+    report = {"flat": stored_rmse(flat_normals(truth), truth)}
+    report.update({name: stored_rmse(torch.cat(values), truth) for name, values in predicted.items()})
+    return report
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
+    parser.add_argument("--procedural", type=int, default=48, help="held-out procedural materials")
+    parser.add_argument("--run-config", type=Path, default=Path("runs/local_keep/config.json"),
+                        help="draw them as this training run did (its config.json; default: the generator's defaults if absent)")
+    parser.add_argument("--gains", type=float, nargs="+", default=[1.0, 1.2, 1.4, 1.7])
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "normal_inference.json")
+    args = parser.parse_args()
+    if not SHARED_TEST.is_dir():
+        raise SystemExit(f"{SHARED_TEST} is absent")
+    model = load_model(args.model)
+    model.eval()
+    fov = constants.DEFAULT_FOV_DEG
+    variants = {f"gain {gain:g}": (gain, "network") for gain in args.gains}
+    variants.update({"unit at 256 px": (1.0, "photo"), "mean of 128 and 256 px": (1.0, "mean")})
+
+    settings = run_generator_settings(args.run_config) if args.run_config.is_file() else {}
+    generator = GeneratorConfig(**{**settings, "size": 256})
+    procedural = torch.stack([generate(3 * 10**9 + 900 + i, config=generator).to_tensor() for i in range(args.procedural)])
+    shared = load_evaluation_materials(SHARED_TEST, "deschaintre5").maps
+    report = {"model": args.model or "shipped", "run_config": str(args.run_config) if settings else None,
+              "procedural": score(model, procedural, evaluation_offsets(len(procedural), 11, fov), fov, variants),
+              "shared": score(model, shared, evaluation_offsets(len(shared), 0, fov), fov, variants)}
+    for name in ("flat", *variants):
+        print(f"{name:>24}: procedural {report['procedural'][name]:.4f}, shared {report['shared'][name]:.4f}")
+    write_report(args.output, "normal_inference", report)
+
+
+if __name__ == "__main__":
+    main()
