@@ -1,7 +1,7 @@
 """Where the normal error lives: the shared test set's relief by scale, and a model's normals beside it.
 
     .venv/bin/python benchmarks/normal_bands.py [--model CKPT] [--symmetrise 8] [-o benchmarks/results/normal_bands.json]
-    .venv/bin/python benchmarks/normal_bands.py --procedural 48 [--coarse-relief-tilt-deg 1 15] [--coarse-relief-probability P]
+    .venv/bin/python benchmarks/normal_bands.py --procedural 48 [--coarse-relief-tilt-deg 1 15] [--coarse-relief-probability P] [--relief-tilt-deg 2.4 45]
 
 On the shared test set (the photos of ``evaluate``'s default protocol: seeded hand-held flashes,
 light known, the network at its training resolution; only measured, never trained on):
@@ -87,12 +87,14 @@ def procedural_bands(args) -> None:
     from mideepbasis.data.procedural import GeneratorConfig, generate
 
     tilt = tuple(args.coarse_relief_tilt_deg) if args.coarse_relief_tilt_deg else None
+    family = {"relief_tilt_deg": tuple(args.relief_tilt_deg)} if args.relief_tilt_deg else {}
     config = GeneratorConfig(size=128, coarse_relief_tilt_deg=tilt,
-                             coarse_relief_probability=args.coarse_relief_probability)
+                             coarse_relief_probability=args.coarse_relief_probability, **family)
     maps = torch.stack([generate(5000 + i, config=config).to_tensor() for i in range(args.procedural)])
     sets = {"procedural": F.interpolate(maps[:, :2], size=(256, 256), mode="bilinear", align_corners=False),
             "shared": load_evaluation_materials(SHARED_TEST, "deschaintre5").stored[:, :2]}
     report = {"coarse_relief_tilt_deg": tilt, "coarse_relief_probability": args.coarse_relief_probability,
+              "relief_tilt_deg": config.relief_tilt_deg,
               "materials": args.procedural, "bands": {}}
     for name, xy in sets.items():
         report["bands"][name] = {band: rms(values) for band, values in bands(xy).items()}
@@ -165,6 +167,8 @@ def main() -> None:
     parser.add_argument("--procedural", type=int, default=0, help="only the bands of this many training materials")
     parser.add_argument("--coarse-relief-tilt-deg", type=float, nargs=2, default=None,
                         help="the generator's coarse_relief_tilt_deg for --procedural")
+    parser.add_argument("--relief-tilt-deg", type=float, nargs=2, default=None,
+                        help="the generator's relief_tilt_deg (the families' own relief) for --procedural")
     parser.add_argument("--coarse-relief-probability", type=float, default=0.7,
                         help="the generator's coarse_relief_probability for --procedural")
     parser.add_argument("--relief-cue", type=int, default=0,
