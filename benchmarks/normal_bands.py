@@ -197,6 +197,8 @@ def main() -> None:
     model = load_model(args.model)
     if args.symmetrise > 1:
         model.normal_unit = DihedralAverage(model.normal_unit, args.symmetrise)
+        if hasattr(model, "normal_booster"):  # the slopes add up: each averaged is their sum averaged
+            model.normal_booster = DihedralAverage(model.normal_booster, args.symmetrise)
     fov = constants.DEFAULT_FOV_DEG
     capturer = Capturer(model, CaptureConfig(fov=fov))
     offsets = evaluation_offsets(len(truth), 0, fov)

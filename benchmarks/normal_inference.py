@@ -51,7 +51,7 @@ def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float,
     upsampled = torch.stack([upsample_bilinear(d, size, size) for d in deviations.unbind(1)], dim=1)
     reliefs = {"network": relief_inputs(stage.photo.float(), light, fov, config.convention, config.plane_extent),
                "photo": relief_inputs(photo.clamp(0, 1), light, fov, config.convention, config.plane_extent)}
-    raw = {where: model.normal_unit(relief) for where, relief in reliefs.items()}
+    raw = {where: model.normal_raw(relief) for where, relief in reliefs.items()}
 
     def slope(gain: float, where: str) -> torch.Tensor:
         if where == "mean":

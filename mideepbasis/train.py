@@ -236,9 +236,11 @@ class TrainConfig:
         if self.normal_pool and self.local_pool:
             raise ValueError("local_pool and normal_pool train different units: give one of them")
         if self.normal_pool:
-            if self.train_only != ("normal_unit",) or not self.network.normal_unit_width:
-                raise ValueError("normal_pool trains the normal unit alone: it needs train_only = normal_unit "
-                                 "and a network with a normal unit (network.normal_unit_width)")
+            if not self.train_only or not set(self.train_only) <= set(NORMAL_PARTS) or not self.network.normal_unit_width:
+                raise ValueError("normal_pool trains the normal units alone: it needs train_only = normal_unit "
+                                 "and/or normal_booster, and a network with a normal unit (network.normal_unit_width)")
+            if "normal_booster" in self.train_only and not self.network.normal_booster_width:
+                raise ValueError("train_only names normal_booster: it needs network.normal_booster_width")
             if self.normal_crop > self.size or self.normal_crop % 16:
                 raise ValueError(f"normal_crop {self.normal_crop} must be a multiple of 16 and at most size {self.size}")
             if self.normal_pool_refresh > self.normal_pool:
@@ -290,7 +292,10 @@ LOCAL_UNIT_FIELDS = ("local_width", "local_encoder_blocks", "local_middle_blocks
                      "local_ending_kernel")
 
 #: Parts of DeepBasisNet (its top-level modules) that ``train_only`` may name.
-TRAINABLE_PARTS = ("encoder", "weight_decoder", "global_unit", "local_unit", "normal_unit")
+TRAINABLE_PARTS = ("encoder", "weight_decoder", "global_unit", "local_unit", "normal_unit", "normal_booster")
+
+#: The parts the normal pool trains (either or both).
+NORMAL_PARTS = ("normal_unit", "normal_booster")
 
 #: Settings a resumed run may change: where and how it runs, not what it learns.
 RESUMABLE_CHANGES = frozenset({"out", "workers", "checkpoint_minutes", "log_every", "validate_every", "device",
@@ -735,8 +740,9 @@ class Trainer:
         if not trained:
             raise InputError(f"this network has none of the parts {list(config.train_only)} to train")
         # The per-pixel units learn faster (the paper trains its local unit faster too).
-        local = [p for n, p in trained if n.startswith(("local_unit.", "normal_unit."))]
-        rest = [p for n, p in trained if not n.startswith(("local_unit.", "normal_unit."))]
+        per_pixel = ("local_unit.", "normal_unit.", "normal_booster.")
+        local = [p for n, p in trained if n.startswith(per_pixel)]
+        rest = [p for n, p in trained if not n.startswith(per_pixel)]
         groups = [{"params": rest, "lr": config.lr, "initial_lr": config.lr}] if rest else []
         if local:
             groups.append({"params": local, "lr": config.local_lr, "initial_lr": config.local_lr})
@@ -771,7 +777,9 @@ class Trainer:
         inputs (their weights start at zero: ``widen_inputs``) and in the sizes of the local and the
         normal units (a unit whose size differs, or that the checkpoint lacks, starts afresh;
         everything else is loaded), except that a normal unit of the same width and levels with more
-        blocks keeps the checkpoint's blocks, the added ones starting as the identity."""
+        blocks keeps the checkpoint's blocks, the added ones starting as the identity, and that a
+        second normal unit (``normal_booster_width``) the checkpoint lacks starts at zero: the
+        network computes what the checkpoint's did. A run without one drops the checkpoint's."""
         from dataclasses import replace
 
         from .model.checkpoint import load_model
@@ -780,6 +788,7 @@ class Trainer:
         config = self.model.config
         local_fields = {name: getattr(config, name) for name in LOCAL_UNIT_FIELDS}
         if replace(source.config, extra_inputs=config.extra_inputs, normal_unit_width=config.normal_unit_width,
+                   normal_booster_width=config.normal_booster_width,
                    normal_unit_blocks=config.normal_unit_blocks, normal_unit_albedo=config.normal_unit_albedo,
                    normal_unit_middle_blocks=config.normal_unit_middle_blocks, **local_fields) != config:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
@@ -794,6 +803,8 @@ class Trainer:
                 or any(b > a for b, a in zip(before.normal_unit_blocks, after.normal_unit_blocks))
                 or before.normal_unit_middle_blocks > after.normal_unit_middle_blocks):
             fresh.append("normal_unit.")
+        if "normal_unit." in fresh or before.normal_booster_width != after.normal_booster_width:
+            fresh.append("normal_booster.")  # (one the checkpoint lacks starts at zero: the same network)
         if fresh:  # those units start afresh
             state = {name: value for name, value in state.items() if not name.startswith(tuple(fresh))}
             state.update({name: value for name, value in target.items() if name.startswith(tuple(fresh))})
@@ -927,9 +938,9 @@ class Trainer:
     def _normal_unit_step(self, crops: tuple[torch.Tensor, torch.Tensor]) -> dict:
         """One step of the normal unit alone (``TrainConfig.normal_pool``) on crops of the pool."""
         relief, truth = (tensor.to(self.device) for tensor in crops)
-        unit = getattr(self.model, "module", self.model).normal_unit
+        model = getattr(self.model, "module", self.model)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
-            raw = unit(relief)
+            raw = model.normal_raw(relief)
         loss = normal_unit_loss(normals_over_flat(raw.float()), truth, self.config.normal_pool_loss)
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": loss.item(), "l_vc": 0.0, "l_saturation": 0.0, "grad_norm": norm.item()}

@@ -471,8 +471,10 @@ def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path
     crops = next(pool)
     losses = [trainer.train_step(crops)["loss"] for _ in range(80)]
     assert sum(losses[-10:]) < 0.7 * sum(losses[:10]), losses
-    with pytest.raises(ValueError, match="normal_pool trains the normal unit alone"):
+    with pytest.raises(ValueError, match="normal_pool trains the normal units alone"):
         tiny_config(tmp_path, normal_pool=3)
+    with pytest.raises(ValueError, match="needs network.normal_booster_width"):
+        pool_config(tmp_path, train_only=("normal_booster",))
     with pytest.raises(ValueError, match="normal_crop 24 must be a multiple of 16"):
         pool_config(tmp_path, normal_crop=24)
     with pytest.raises(ValueError, match="normal_pool -1 must be 0"):
@@ -510,6 +512,42 @@ def test_a_unit_given_the_albedo_shading_starts_as_the_checkpoint_and_learns_fro
     widened = save_checkpoint(tmp_path / "widened.safetensors", trainer.model)
     with pytest.raises(InputError, match="reads the albedo shading and this run's does not"):
         Trainer(pool_config(tmp_path / "b", init=str(widened)), progress=False)
+
+
+def test_a_second_normal_unit_starts_at_zero_and_learns_alone_from_the_pool(tmp_path):
+    from mideepbasis.model.checkpoint import load_model, save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    source_net = DeepBasisNet(preset("tiny", normal_unit_width=4)).eval()
+    with torch.no_grad():  # residual scales away from their zero start, so every block computes something
+        for name, parameter in source_net.named_parameters():
+            if name.endswith(("beta", "gamma")):
+                parameter.normal_(0.0, 0.5)
+    source = save_checkpoint(tmp_path / "source.safetensors", source_net)
+    boosted = {"normal_unit_width": 4, "normal_booster_width": 6}
+    trainer = Trainer(pool_config(tmp_path / "a", init=str(source), network=boosted, train_only=("normal_booster",),
+                                  steps=6), progress=False)
+    model = trainer.model.eval()
+    inputs = torch.rand(2, 9, 32, 32) * 2 - 1
+    lights = torch.tensor([[0.1, 0.0, 2.4], [0.0, -0.2, 2.4]])
+    with torch.no_grad():
+        start = model(inputs, lights).maps
+    torch.testing.assert_close(start, source_net(inputs, lights).maps, rtol=0.0, atol=0.0)  # it adds exactly zero
+    before = {name: value.clone() for name, value in trainer.model.state_dict().items()}
+    trainer.run()
+    changed = {name for name, value in trainer.model.state_dict().items() if not torch.equal(before[name], value)}
+    assert "normal_booster.ending.weight" in changed and all(name.startswith("normal_booster.") for name in changed)
+    # The two units' slopes add up: the saved network reloads with its second unit and computes it.
+    reloaded = load_model(save_checkpoint(tmp_path / "boosted.safetensors", trainer.model.eval()))
+    assert reloaded.config.normal_booster_width == 6
+    with torch.no_grad():
+        relief = torch.rand(1, 7, 32, 32)
+        torch.testing.assert_close(reloaded.normal_raw(relief),
+                                   reloaded.normal_unit(relief) + reloaded.normal_booster(relief))
+        assert not torch.equal(reloaded(inputs, lights).maps, start)
+    with pytest.raises(ValueError, match="adds to the first: it needs normal_unit_width"):
+        preset("tiny", normal_booster_width=4)
 
 
 def test_training_materials_follow_the_runs_procedural_settings(tmp_path):

@@ -112,7 +112,16 @@ class NetworkConfig:
     colour from relief with its own few features. The diffuse is blended from the bases and local
     deviations first (the unit changes only the normal), without a gradient through it."""
 
+    normal_booster_width: int = 0
+    """Channels of the first level of a second normal unit beside the first (0: none): the same
+    levels, blocks and inputs, its raw slope added to the first's before their tanh, its last
+    convolution starting at zero. A checkpoint's network given one computes what it did until
+    trained, so the relief gains capacity without losing what the first unit learnt (widening the
+    first would not: its LayerNorms see the added channels)."""
+
     def __post_init__(self):
+        if self.normal_booster_width and not self.normal_unit_width:
+            raise ValueError("the second normal unit (normal_booster_width) adds to the first: it needs normal_unit_width")
         unknown = sorted(set(self.extra_inputs) - set(EXTRA_INPUTS))
         if unknown:
             raise ValueError(f"unknown extra inputs {unknown}; expected some of {list(EXTRA_INPUTS)}")
@@ -519,6 +528,11 @@ class DeepBasisNet(nn.Module):
         if config.normal_unit_width:
             self.normal_unit = normal_unit(config.normal_unit_width, config.normal_unit_blocks,
                                            config.normal_unit_middle_blocks, config.normal_unit_albedo)
+        if config.normal_booster_width:
+            self.normal_booster = normal_unit(config.normal_booster_width, config.normal_unit_blocks,
+                                              config.normal_unit_middle_blocks, config.normal_unit_albedo)
+            nn.init.zeros_(self.normal_booster.ending.weight)
+            nn.init.zeros_(self.normal_booster.ending.bias)
 
     def forward(self, inputs: torch.Tensor, lights: torch.Tensor | None = None,
                 fov: float = constants.DEFAULT_FOV_DEG, with_normal_unit: bool = True) -> DeepBasisOutput:
@@ -598,7 +612,13 @@ class DeepBasisNet(nn.Module):
                                                      keep_bases=False).maps[:, constants.DIFFUSE].float()
         relief = relief_inputs(stage.photo.float(), lights.view(batch, 3).float(), fov, config.convention,
                                config.plane_extent, diffuse=diffuse).to(stage.local_inputs.dtype)
-        return torch.tanh(self.normal_unit(relief))
+        return torch.tanh(self.normal_raw(relief))
+
+    def normal_raw(self, relief: torch.Tensor) -> torch.Tensor:
+        """The normal units' slope before its tanh, (B, 2, H, W), from their relief inputs: the
+        first unit's, plus the second's (``normal_booster_width``) where there is one."""
+        raw = self.normal_unit(relief)
+        return raw + self.normal_booster(relief) if hasattr(self, "normal_booster") else raw
 
 
 def slope_change(slope: torch.Tensor) -> torch.Tensor:
