@@ -351,16 +351,24 @@ def test_train_only_the_normal_unit_from_a_network_without_one(tmp_path):
         tiny_config(tmp_path, train_only=("decoder",))
 
 
-def test_a_deepened_normal_unit_starts_as_the_checkpoint_it_grew_from(tmp_path):
-    from mideepbasis.model.checkpoint import save_checkpoint
+def network_with_a_working_normal_unit():
+    """A tiny network with a normal unit of width 4 whose residual scales are away from their zero
+    start, so that every block computes something (seeded)."""
     from mideepbasis.model.network import DeepBasisNet, preset
 
     torch.manual_seed(0)
-    source = DeepBasisNet(preset("tiny", normal_unit_width=4)).eval()
-    with torch.no_grad():  # residual scales away from their zero start, so every block computes something
-        for name, parameter in source.named_parameters():
+    network = DeepBasisNet(preset("tiny", normal_unit_width=4)).eval()
+    with torch.no_grad():
+        for name, parameter in network.named_parameters():
             if name.endswith(("beta", "gamma")):
                 parameter.normal_(0.0, 0.5)
+    return network
+
+
+def test_a_deepened_normal_unit_starts_as_the_checkpoint_it_grew_from(tmp_path):
+    from mideepbasis.model.checkpoint import save_checkpoint
+
+    source = network_with_a_working_normal_unit()
     path = save_checkpoint(tmp_path / "source.safetensors", source)
     deeper = {"normal_unit_width": 4, "normal_unit_blocks": (1, 1, 2, 2), "normal_unit_middle_blocks": 3}
     model = Trainer(tiny_config(tmp_path / "d", init=str(path), network=deeper), progress=False).model.eval()
@@ -484,14 +492,8 @@ def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path
 def test_a_unit_given_the_albedo_shading_starts_as_the_checkpoint_and_learns_from_the_pool(tmp_path):
     from mideepbasis.errors import InputError
     from mideepbasis.model.checkpoint import save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, preset
 
-    torch.manual_seed(0)
-    source_net = DeepBasisNet(preset("tiny", normal_unit_width=4)).eval()
-    with torch.no_grad():
-        for name, parameter in source_net.named_parameters():
-            if name.endswith(("beta", "gamma")):
-                parameter.normal_(0.0, 0.5)
+    source_net = network_with_a_working_normal_unit()
     source = save_checkpoint(tmp_path / "source.safetensors", source_net)
     albedo = {"normal_unit_width": 4, "normal_unit_albedo": True}
     trainer = Trainer(pool_config(tmp_path / "a", init=str(source), network=albedo), progress=False)
@@ -516,14 +518,9 @@ def test_a_unit_given_the_albedo_shading_starts_as_the_checkpoint_and_learns_fro
 
 def test_a_second_normal_unit_starts_at_zero_and_learns_alone_from_the_pool(tmp_path):
     from mideepbasis.model.checkpoint import load_model, save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, preset
+    from mideepbasis.model.network import preset
 
-    torch.manual_seed(0)
-    source_net = DeepBasisNet(preset("tiny", normal_unit_width=4)).eval()
-    with torch.no_grad():  # residual scales away from their zero start, so every block computes something
-        for name, parameter in source_net.named_parameters():
-            if name.endswith(("beta", "gamma")):
-                parameter.normal_(0.0, 0.5)
+    source_net = network_with_a_working_normal_unit()
     source = save_checkpoint(tmp_path / "source.safetensors", source_net)
     boosted = {"normal_unit_width": 4, "normal_booster_width": 6}
     trainer = Trainer(pool_config(tmp_path / "a", init=str(source), network=boosted, train_only=("normal_booster",),
