@@ -78,17 +78,18 @@ class SearchResult:
     """The last pass's prediction (its maps at the search's network resolution)."""
 
 
-def downsample(image: torch.Tensor, size: int) -> torch.Tensor:
-    """Area-average (..., C, H, W) to size x size (no-op when already there)."""
-    if image.shape[-1] == size and image.shape[-2] == size:
+def downsample(image: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
+    """Area-average (..., C, H, W) to size x size, or to (height, width) (no-op when already there)."""
+    height, width = (size, size) if isinstance(size, int) else size
+    if tuple(image.shape[-2:]) == (height, width):
         return image
     shape = image.shape
     flat = image.reshape(-1, *shape[-3:])
-    return F.interpolate(flat, size=(size, size), mode="area").reshape(*shape[:-2], size, size)
+    return F.interpolate(flat, size=(height, width), mode="area").reshape(*shape[:-2], height, width)
 
 
-def downsample_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
-    """Maps (B, 10, H, W) area-averaged to size x size, their normals renormalised."""
+def downsample_maps(maps: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
+    """Maps (B, 10, H, W) area-averaged to size x size (or (height, width)), their normals renormalised."""
     small = downsample(maps, size)
     return torch.cat([F.normalize(small[:, constants.NORMAL], dim=1), small[:, constants.REFLECTANCE]], dim=1)
 

@@ -50,25 +50,6 @@ def _as_maps(material) -> torch.Tensor:
     return maps.detach().float().cpu()
 
 
-#: Largest map side the path-traced previews are given [pixels]. A preview is 256 px wide and
-#: shows the sample smaller than that, so larger maps are area-averaged down first: the same
-#: picture with less aliasing, and at 2048 px 3 x 4 texture uploads of 16 MB fewer.
-PREVIEW_MAP_SIZE = 2 * constants.PREVIEW_RESOLUTION
-
-
-def preview_maps(maps: torch.Tensor, most: int = PREVIEW_MAP_SIZE) -> torch.Tensor:
-    """(10, H, W) maps as a preview is given them: unchanged (the same tensor) when neither side
-    exceeds ``most``, else area-averaged so that the longer side is ``most``, normals renormalised."""
-    height, width = maps.shape[-2:]
-    if max(height, width) <= most:
-        return maps
-    scale = most / max(height, width)
-    size = (max(1, round(height * scale)), max(1, round(width * scale)))
-    small = torch.nn.functional.interpolate(maps[None].float(), size=size, mode="area")[0]
-    small[constants.NORMAL] = torch.nn.functional.normalize(small[constants.NORMAL], dim=0)
-    return small
-
-
 def set_material(scene: mi.Scene, material, shape: str = "sample") -> None:
     """Replace the maps of the ``svbrdf`` material on the shape with id ``shape`` by ``material``'s."""
     params = mi.traverse(scene)

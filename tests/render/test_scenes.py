@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from mideepbasis import export
 from mideepbasis.render import bridge, scenes
 
 #: Mean relative difference allowed between the path-traced flash scene and the per-pixel path.
@@ -43,17 +44,17 @@ def test_path_traced_flash_scene_agrees_with_per_pixel_path(offset, fov_height):
 
 
 def test_preview_maps_are_kept_up_to_their_size_and_block_averaged_above():
-    small = smooth_material(scenes.PREVIEW_MAP_SIZE)
-    assert scenes.preview_maps(small) is small  # a 256 px capture's previews see its own maps
-    large = smooth_material(2 * scenes.PREVIEW_MAP_SIZE)
-    shown = scenes.preview_maps(large)
-    assert shown.shape == (10, scenes.PREVIEW_MAP_SIZE, scenes.PREVIEW_MAP_SIZE)
+    small = smooth_material(export.PREVIEW_MAP_SIZE)
+    assert export.preview_maps(small) is small  # a 256 px capture's previews see its own maps
+    large = smooth_material(2 * export.PREVIEW_MAP_SIZE)
+    shown = export.preview_maps(large)
+    assert shown.shape == (10, export.PREVIEW_MAP_SIZE, export.PREVIEW_MAP_SIZE)
     # Each texel is its 2 x 2 block's mean (the reference: a reshape), the normal renormalised.
-    blocks = large.reshape(10, scenes.PREVIEW_MAP_SIZE, 2, scenes.PREVIEW_MAP_SIZE, 2).mean(dim=(2, 4))
+    blocks = large.reshape(10, export.PREVIEW_MAP_SIZE, 2, export.PREVIEW_MAP_SIZE, 2).mean(dim=(2, 4))
     torch.testing.assert_close(shown[3:], blocks[3:])
     torch.testing.assert_close(shown[:3], blocks[:3] / blocks[:3].norm(dim=0, keepdim=True))
-    wide = scenes.preview_maps(smooth_material(2 * scenes.PREVIEW_MAP_SIZE)[:, :300])
-    assert wide.shape == (10, 150, scenes.PREVIEW_MAP_SIZE)  # the longer side sets the scale
+    wide = export.preview_maps(smooth_material(2 * export.PREVIEW_MAP_SIZE)[:, :300])
+    assert wide.shape == (10, 150, export.PREVIEW_MAP_SIZE)  # the longer side sets the scale
 
 
 @pytest.mark.parametrize("environment", ["studio", "sunsky"])
