@@ -24,11 +24,12 @@ from pathlib import Path
 
 import mideepbasis  # noqa: F401
 import torch
-import torch.nn.functional as F
 from common import RESULTS, SHARED_TEST, run_generator_settings, write_report
 from normal_bands import flat_normals, stored_rmse
 
 from mideepbasis import constants
+from mideepbasis.capture.pipeline import network_resolution_limit
+from mideepbasis.capture.search import downsample
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.evaluation.protocol import evaluation_offsets, flash_photos, load_evaluation_materials
 from mideepbasis.model.checkpoint import load_model
@@ -43,7 +44,8 @@ def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float,
     network runs once."""
     config = model.config
     size = photo.shape[-1]
-    small = F.interpolate(photo, size=(128, 128), mode="area") if size > 128 else photo
+    limit = network_resolution_limit(model)  # as capture runs the network: at its training resolution
+    small = downsample(photo, limit) if limit and size > limit else photo
     inputs = encode_inputs(small, light, fov, config.convention, config.plane_extent, config.extra_inputs)
     stage = model.basis_stage(inputs, light, fov)
     deviations = model.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
