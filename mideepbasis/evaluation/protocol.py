@@ -133,9 +133,9 @@ def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch
 
 def resize_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
     """Maps (10, H, W) resampled to (10, size, size) by area averaging, the normals renormalised."""
-    small = torch.nn.functional.interpolate(maps[None], size=(size, size), mode="area")[0]
-    small[constants.NORMAL] = torch.nn.functional.normalize(small[constants.NORMAL], dim=0)
-    return small
+    from ..capture.search import downsample_maps
+
+    return downsample_maps(maps[None], size)[0]
 
 
 #: The paper's DeepBasis map RMSE (its 122 test scenes), for tables.
