@@ -196,10 +196,13 @@ EARLIER_MATERIAL_SUMS = [(3625.0993710723415, 3967.2309139166027), (3920.9702582
 
 def test_materials_stay_those_of_earlier_runs_with_the_new_options_off():
     config = GeneratorConfig(size=64, coarse_relief_tilt_deg=(1.5, 30.0), coarse_relief_probability=0.85)
+    # The maps are float32 made by vectorised kernels, which round differently on other processors
+    # (2.5e-9 of the sum seen between two machines of this project); any change of what is drawn
+    # moves a sum by far more than 1e-6 of it.
     for seed, (normal_sum, rest_sum) in enumerate(EARLIER_MATERIAL_SUMS):
         maps = generate(seed, config=config).to_tensor().double()
-        assert float(maps[:3].sum()) == pytest.approx(normal_sum, rel=1e-9, abs=1e-6), seed
-        assert float(maps[3:].sum()) == pytest.approx(rest_sum, rel=1e-9, abs=1e-6), seed
+        assert float(maps[:3].sum()) == pytest.approx(normal_sum, rel=1e-6), seed
+        assert float(maps[3:].sum()) == pytest.approx(rest_sum, rel=1e-6), seed
 
 
 def test_gloss_and_darkening_scale_the_roughness_and_albedo_and_keep_the_relief():
