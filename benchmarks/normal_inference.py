@@ -35,6 +35,7 @@ from mideepbasis.evaluation.protocol import evaluation_offsets, flash_photos, lo
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.model.inputs import encode_inputs, relief_inputs
 from mideepbasis.model.network import DeepBasisOutput, slope_change, upsample_bilinear
+from mideepbasis.model.symmetry import symmetrised_field
 
 
 def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float, variants: dict) -> dict:
@@ -51,19 +52,24 @@ def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float,
     deviations = model.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
     weights = upsample_bilinear(stage.weights, size, size)
     upsampled = torch.stack([upsample_bilinear(d, size, size) for d in deviations.unbind(1)], dim=1)
-    reliefs = {"network": relief_inputs(stage.photo.float(), light, fov, config.convention, config.plane_extent),
-               "photo": relief_inputs(photo.clamp(0, 1), light, fov, config.convention, config.plane_extent)}
-    raw = {where: model.normal_raw(relief) for where, relief in reliefs.items()}
+    images = {"network": stage.photo.float(), "photo": photo.clamp(0, 1)}
 
-    def slope(gain: float, where: str) -> torch.Tensor:
+    def unit_slope(images: torch.Tensor, lights: torch.Tensor, gain: float = 1.0) -> torch.Tensor:
+        relief = relief_inputs(images, lights, fov, config.convention, config.plane_extent)
+        return torch.tanh(gain * model.normal_raw(relief))
+
+    def slope(gain: float, where: str, symmetries: int) -> torch.Tensor:
         if where == "mean":
-            return 0.5 * (slope(gain, "network") + slope(gain, "photo"))
-        return upsample_bilinear(torch.tanh(gain * raw[where]), size, size)
+            return 0.5 * (slope(gain, "network", symmetries) + slope(gain, "photo", symmetries))
+        field = symmetrised_field(lambda image, lights: unit_slope(image, lights, gain), images[where], light,
+                                  symmetries)
+        return upsample_bilinear(field, size, size)
 
     normals = {}
-    for name, (gain, where) in variants.items():
+    for name, (gain, where, *rest) in variants.items():
         output = DeepBasisOutput.from_bases(weights, stage.global_bases,
-                                            upsampled + slope_change(slope(gain, where))[:, None], keep_bases=False)
+                                            upsampled + slope_change(slope(gain, where, *(rest or [1])))[:, None],
+                                            keep_bases=False)
         normals[name] = output.maps[:, constants.NORMAL]
     return normals
 
@@ -89,6 +95,10 @@ def main() -> None:
     parser.add_argument("--run-config", type=Path, default=Path("runs/local_keep/config.json"),
                         help="draw them as this training run did (its config.json; default: the generator's defaults if absent)")
     parser.add_argument("--gains", type=float, nargs="+", default=[1.0, 1.2, 1.4, 1.7])
+    parser.add_argument("--symmetries", type=int, nargs="*", default=[2, 4, 8],
+                        help="the unit's slope averaged over this many symmetries of the square (model.symmetry)")
+    parser.add_argument("--symmetric-gains", type=float, nargs="*", default=[1.2, 1.4, 1.7],
+                        help="gains tried on the slope averaged over all 8 symmetries")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "normal_inference.json")
     args = parser.parse_args()
     if not SHARED_TEST.is_dir():
@@ -98,6 +108,8 @@ def main() -> None:
     fov = constants.DEFAULT_FOV_DEG
     variants = {f"gain {gain:g}": (gain, "network") for gain in args.gains}
     variants.update({"unit at 256 px": (1.0, "photo"), "mean of 128 and 256 px": (1.0, "mean")})
+    variants.update({f"mean over {count} symmetries": (1.0, "network", count) for count in args.symmetries})
+    variants.update({f"gain {gain:g}, mean over 8 symmetries": (gain, "network", 8) for gain in args.symmetric_gains})
 
     settings = run_generator_settings(args.run_config) if args.run_config.is_file() else {}
     generator = GeneratorConfig(**{**settings, "size": 256})

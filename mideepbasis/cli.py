@@ -289,6 +289,9 @@ def _add_evaluate(subparsers) -> None:
     parser.add_argument("--network-resolution", type=int, default=None, metavar="N",
                         help="largest resolution the network runs at [pixels] (default: the model's training "
                              "resolution; 0: the materials' own)")
+    parser.add_argument("--symmetries", type=int, choices=[1, 2, 4, 8], default=None,
+                        help="average the prediction over this many turns and mirrorings of each photo "
+                             "(default: capture's)")
     parser.add_argument("--limit", type=_positive_int, default=None, help="only the first N materials")
     parser.add_argument("--resolution", type=_positive_int, default=None, help="resample the materials first [pixels]")
     parser.add_argument("--seed", type=int, default=0)
@@ -315,7 +318,8 @@ def _run_evaluate(args) -> None:
                               baselines=args.baselines,
                               direct_model=str(args.direct_model) if args.direct_model else None,
                               lighting=args.lighting, seed=args.seed, limit=args.limit, resolution=args.resolution,
-                              network_resolution=args.network_resolution, environment=environments,
+                              network_resolution=args.network_resolution, symmetries=args.symmetries,
+                              environment=environments,
                               environment_spp=args.environment_spp,
                               environment_resolution=args.environment_resolution)
     summary = run_evaluation(config)

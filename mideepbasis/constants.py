@@ -23,6 +23,11 @@ OFFSET_SIGMA_DIVISOR = 3.0
 #: Default working resolution of captures and training crops [pixels].
 DEFAULT_RESOLUTION = 256
 
+#: Turns and mirrorings of the photo a capture's prediction is averaged over (1, 2, 4 or 8;
+#: ``DeepBasisNet.symmetrised``). 8: on the shared test set, re-render RMSE 0.0910 -> 0.090
+#: (models/MODEL.md, ninth session), for one pass of eight photos instead of one.
+DEFAULT_SYMMETRIES = 8
+
 
 def camera_height(fov_deg: float = DEFAULT_FOV_DEG) -> float:
     """Height H of the camera above the sample so that the sample fills the frame.

@@ -315,7 +315,8 @@ def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_an
                            metadata={"training": {"config": {"size": 32}}})
     capturer = Capturer(load_model(path), CaptureConfig(refine=RefineConfig(steps=5, resolution=16)))
     photos, lights = flash_photos(material(7, size=64), torch.tensor([[0.1, -0.2]]))
-    upsampled = predict(capturer.model, photos[0][None], lights)  # the photo as the capturer passes it
+    upsampled = predict(capturer.model, photos[0][None], lights,  # the photo as the capturer passes it
+                        symmetries=capturer.config.symmetries)
     prediction = capturer.predict(Photo(photos[0], 45.0, "argument"), (0.1, -0.2))
     # Nothing of the prediction is held at the photo's size, yet its maps are the upsampled ones.
     assert prediction.output.deviations.shape[-2:] == (32, 32) and prediction.size == (64, 64)
@@ -333,7 +334,7 @@ def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_an
     refined, losses = capturer.refine(prediction, Photo(photos[0], 45.0, "argument"), (0.1, -0.2))
     bases, reference_losses = refine_global_bases(upsampled, photos[0], lights[0], 45.0, capturer.convention,
                                                   config=capturer.config.refine)
-    assert np.abs(np.subtract(losses, reference_losses)).max() < 1e-7
+    assert np.abs(np.subtract(losses, reference_losses)).max() < 3e-7  # a few float32 steps of a loss near 0.7
     assert (refined.maps - upsampled.compose(bases).maps).abs().max() < 1e-6
 
 

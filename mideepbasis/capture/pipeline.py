@@ -25,6 +25,7 @@ from .. import constants, geometry
 from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
+from ..model.symmetry import parse_symmetries
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -48,6 +49,12 @@ class CaptureConfig:
     """Largest resolution the network runs at [pixels]; a larger photo is predicted on a
     downsampled copy and the weights and deviations upsampled. None: the resolution the model was
     trained at (from its checkpoint); 0: no limit."""
+
+    symmetries: int = field(default=constants.DEFAULT_SYMMETRIES,
+                            metadata={"parse": parse_symmetries, "metavar": "{1,2,4,8}"})
+    """The network's answer averaged over this many turns and mirrorings of the photo (1, 2, 4 or
+    8; ``DeepBasisNet.symmetrised``): 8 costs a pass of eight photos instead of one. The lighting
+    search's passes take one."""
 
     search: SearchConfig = SearchConfig()
     """The lighting search (when ``light`` is None)."""
@@ -161,18 +168,20 @@ class Prediction:
 
 
 def predict_small(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
-                  fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None) -> Prediction:
+                  fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None,
+                  symmetries: int = 1) -> Prediction:
     """``predict``, its output left at the network's resolution (a ``Prediction``)."""
     limit = network_resolution_limit(model, network_resolution)
     height, width = photos.shape[-2:]
     if limit and max(height, width) > limit:
         scale = limit / max(height, width)
         photos = F.interpolate(photos, size=(max(1, round(height * scale)), max(1, round(width * scale))), mode="area")
-    return Prediction(_network_pass(model, photos, lights, fov), (height, width))
+    return Prediction(_network_pass(model, photos, lights, fov, symmetries), (height, width))
 
 
 def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
-            fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None) -> DeepBasisOutput:
+            fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None,
+            symmetries: int = 1) -> DeepBasisOutput:
     """The material seen in ``photos`` (B, 3, H, W) taken with flashes at ``lights`` (B, 3).
 
     The network runs at most at ``network_resolution`` [pixels] (None: the resolution the model was
@@ -182,15 +191,20 @@ def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
     fully convolutional network run at a larger scale than it was trained at sees every feature
     bigger than in training; on the shared test set the shipped model (trained at 128 px) gave
     lower errors at 128 px upsampled than run at 256 px (benchmarks/model_quality.py).
+    ``symmetries``: the answer averaged over that many turns and mirrorings of the photo
+    (``DeepBasisNet.symmetrised``).
     """
-    prediction = predict_small(model, photos, lights, fov, network_resolution)
+    prediction = predict_small(model, photos, lights, fov, network_resolution, symmetries)
     output = prediction.output
     return output if tuple(output.maps.shape[-2:]) == prediction.size else output.upsample(*prediction.size)
 
 
-def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor, fov: float) -> DeepBasisOutput:
+def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor, fov: float,
+                  symmetries: int = 1) -> DeepBasisOutput:
     """One network pass at the photos' own size; a size that is not a multiple of the network's
-    stride is padded by reflection and the prediction cropped back."""
+    stride is padded by reflection and the prediction cropped back (the padding, on the bottom
+    and right, then turns with the photo: the symmetries are not exact there). A non-square photo
+    is averaged over the 4 mirrorings where 8 symmetries are asked for."""
     device = next(model.parameters()).device
     height, width = photos.shape[-2:]
     stride = model.config.stride
@@ -199,8 +213,12 @@ def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tenso
                            model.config.extra_inputs)
     if pad_h or pad_w:
         inputs = F.pad(inputs, (0, pad_w, 0, pad_h), mode="reflect")
+    if symmetries == 8 and inputs.shape[-1] != inputs.shape[-2]:
+        symmetries = 4
+    # A single pass names no symmetries: any model with DeepBasisNet's call serves (tests' oracles).
+    options = {"symmetries": symmetries} if symmetries > 1 else {}
     with torch.no_grad():
-        output = model(inputs.to(device), lights.to(device), fov=fov)
+        output = model(inputs.to(device), lights.to(device), fov=fov, **options)
     return output.crop(height, width) if pad_h or pad_w else output
 
 
@@ -264,7 +282,8 @@ class Capturer:
     def predict(self, photo: Photo, offset: tuple[float, float] | torch.Tensor) -> Prediction:
         """The network's prediction for the photo taken with the flash at ``offset`` [patch half-widths]."""
         light = flash_position(offset, photo.fov)
-        return predict_small(self.model, photo.pixels[None], light[None], photo.fov, self.config.network_resolution)
+        return predict_small(self.model, photo.pixels[None], light[None], photo.fov, self.config.network_resolution,
+                             self.config.symmetries)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""

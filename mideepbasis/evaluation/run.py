@@ -46,6 +46,10 @@ class EvaluationConfig:
     """Largest resolution the network runs at [pixels] (None: the model's training resolution; 0: no
     limit), as in ``capture``."""
 
+    symmetries: int | None = None
+    """Turns and mirrorings of each photo the model's prediction is averaged over (1, 2, 4 or 8;
+    None: capture's default, ``CaptureConfig.symmetries``)."""
+
     baselines: bool = False
     """Add the trivial, direct (``direct_model``), unrefined and refined rows."""
 
@@ -78,20 +82,27 @@ class EvaluationConfig:
     """Size of the environment renders [pixels] (None: the protocol's)."""
 
 
+def _capture_config(symmetries: int | None = None, **fields):
+    """The capture settings of an evaluation: capture's own where the evaluation leaves one None."""
+    from ..capture import CaptureConfig
+
+    return CaptureConfig(**fields, **({} if symmetries is None else {"symmetries": symmetries}))
+
+
 def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine_steps: int,
-                 progress: bool, label: str, refine_normals: bool = False, network_resolution: int | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+                 progress: bool, label: str, refine_normals: bool = False, network_resolution: int | None = None,
+                 symmetries: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine_steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
     import time
 
     from tqdm import tqdm
 
-    from ..capture import CaptureConfig, Capturer, Photo, RefineConfig
+    from ..capture import Capturer, Photo, RefineConfig
 
     convention = model.config.convention
-    capturer = Capturer(model, CaptureConfig(fov=fov, network_resolution=network_resolution,
-                                             refine=RefineConfig(steps=refine_steps, normals=refine_normals)))
+    capturer = Capturer(model, _capture_config(fov=fov, network_resolution=network_resolution, symmetries=symmetries,
+                                               refine=RefineConfig(steps=refine_steps, normals=refine_normals)))
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
@@ -151,7 +162,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     predictions = {}
     steps = config.refine_steps or (CaptureConfig().refine.steps if config.baselines else 0)
     plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model",
-                                           config.refine_normals, config.network_resolution)
+                                           config.refine_normals, config.network_resolution, config.symmetries)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
     kept = "" if config.refine_normals else ", normals kept"
@@ -174,7 +185,8 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
         if direct is not None:
             start = time.perf_counter()
             predictions["direct (no bases)"], _, _ = _predict_all(direct, truth, offsets, config.fov, "known", 0, progress,
-                                                                  "direct", network_resolution=config.network_resolution)
+                                                                  "direct", network_resolution=config.network_resolution,
+                                                                  symmetries=config.symmetries)
             rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
             per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention,
                                                       lpips, stored=stored)
@@ -194,7 +206,8 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
                "resolution": truth.shape[-1],
                "model": config.model or "shipped", "convention": convention, "light": config.light,
                "refine_steps": config.refine_steps, "refine_normals": config.refine_normals,
-               "network_resolution": config.network_resolution, "row": main_row,
+               "network_resolution": config.network_resolution,
+               "symmetries": config.symmetries or CaptureConfig().symmetries, "row": main_row,
                **summary_scores(main), "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),
                "light_error_deg": main.get("light_error_deg"), "rows": rows, "notes": notes, "seed": config.seed}
     environment_scores = None
@@ -233,11 +246,12 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
     """The search's angular error by roughness group, and map and re-rendering RMSE against the offset angle."""
     from tqdm import tqdm
 
-    from ..capture import CaptureConfig, Capturer, Photo
+    from ..capture import Capturer, Photo
     from ..data.synth import sample_offsets
 
     convention = model.config.convention
-    capturer = Capturer(model, CaptureConfig(fov=config.fov, network_resolution=config.network_resolution))
+    capturer = Capturer(model, _capture_config(fov=config.fov, network_resolution=config.network_resolution,
+                                               symmetries=config.symmetries))
     errors = {group: [] for group in ROUGHNESS_GROUPS}
     for index in tqdm(range(len(truth)), desc="lighting search", unit="material", disable=not progress):
         roughness = float(truth[index, 6].mean())

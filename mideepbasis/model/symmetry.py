@@ -1,0 +1,137 @@
+"""The symmetries of the capture: the square sample under a camera and flash above its centre is
+unchanged by the eight rotations and mirrorings of the square (the dihedral group D4), so a
+network's answer for a photo and for the photo turned or mirrored (with its flash position turned
+the same way) should agree once turned back. Averaging the answers over the group (test-time
+augmentation) removes the part of a trained network's error that breaks the symmetry.
+
+Coordinates as in ``geometry.pixel_points``: x grows with the column, y with decreasing row. A
+symmetry is applied as an optional transpose, then an optional mirror of the columns, then of the
+rows. On the plane they are the maps (x, y) -> (-y, -x), x -> -x and y -> -y; every one is its own
+inverse, so a symmetry is undone by applying its steps in the reverse order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class Symmetry:
+    """One element of D4, as the steps that make it."""
+
+    transpose: bool = False
+    """Swap rows and columns first: (x, y) -> (-y, -x) on the plane. Needs a square image."""
+
+    mirror_columns: bool = False
+    """Then reverse the columns: x -> -x."""
+
+    mirror_rows: bool = False
+    """Then reverse the rows: y -> -y."""
+
+    def steps(self) -> list[str]:
+        return [name for name, on in (("transpose", self.transpose), ("columns", self.mirror_columns),
+                                      ("rows", self.mirror_rows)) if on]
+
+    def image(self, image: torch.Tensor, inverse: bool = False) -> torch.Tensor:
+        """(..., H, W) images moved by the symmetry (or by its inverse)."""
+        for step in (reversed(self.steps()) if inverse else self.steps()):
+            image = _IMAGE_STEPS[step](image)
+        return image
+
+    def vectors(self, vectors: torch.Tensor, dim: int = 1, inverse: bool = False) -> torch.Tensor:
+        """Vectors whose first two components along ``dim`` are x and y on the plane (a flash
+        position (B, 3), a slope field (B, 2, H, W)), their x and y moved by the symmetry (or by its
+        inverse); further components (z) are kept."""
+        x, y = vectors.narrow(dim, 0, 1), vectors.narrow(dim, 1, 1)
+        for step in (reversed(self.steps()) if inverse else self.steps()):
+            x, y = _VECTOR_STEPS[step](x, y)
+        return torch.cat([x, y, vectors.narrow(dim, 2, vectors.shape[dim] - 2)], dim=dim)
+
+    def field(self, field: torch.Tensor, inverse: bool = False) -> torch.Tensor:
+        """A vector field (B, 2+, H, W) moved as a whole: its pixels and its vectors."""
+        return self.vectors(self.image(field, inverse), dim=1, inverse=inverse)
+
+
+_IMAGE_STEPS = {"transpose": lambda image: image.transpose(-1, -2),
+                "columns": lambda image: image.flip(-1),
+                "rows": lambda image: image.flip(-2)}
+_VECTOR_STEPS = {"transpose": lambda x, y: (-y, -x),
+                 "columns": lambda x, y: (-x, y),
+                 "rows": lambda x, y: (x, -y)}
+
+#: The group by how many of its elements are used: 1 the identity, 2 and a mirror of the columns,
+#: 4 the mirrorings (and the half turn), 8 the whole group (needs square images).
+SYMMETRY_SETS = {
+    1: (Symmetry(),),
+    2: (Symmetry(), Symmetry(mirror_columns=True)),
+    4: tuple(Symmetry(False, c, r) for c in (False, True) for r in (False, True)),
+    8: tuple(Symmetry(t, c, r) for t in (False, True) for c in (False, True) for r in (False, True)),
+}
+
+
+def symmetrised_field(function: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], image: torch.Tensor,
+                      lights: torch.Tensor, count: int = 8) -> torch.Tensor:
+    """The mean over ``count`` symmetries (``SYMMETRY_SETS``) of ``function(image, lights)``, a
+    vector field (B, 2+, H, W) whose first two channels are x and y on the plane, each answer
+    computed on the moved image and flash and moved back. All the moved inputs go through
+    ``function`` as one batch.
+
+    Args:
+        function: (images (B', C, H, W), lights (B', 3)) -> vector field (B', 2+, H, W).
+        image: (B, C, H, W) images of the sample (square where ``count`` is 8).
+        lights: (B, 3) flash positions [patch half-widths].
+    """
+    group = symmetry_group(count, *image.shape[-2:])
+    if count == 1:
+        return function(image, lights)
+    moved = function(torch.cat([s.image(image) for s in group]), torch.cat([s.vectors(lights, dim=1) for s in group]))
+    return mean_moved_back(group, moved, "field")
+
+
+
+def parse_symmetries(text: str) -> int:
+    """A count of symmetries from the command line: one of ``SYMMETRY_SETS``."""
+    count = int(text)
+    if count not in SYMMETRY_SETS:
+        raise ValueError(f"must be one of {', '.join(map(str, sorted(SYMMETRY_SETS)))}, got {count}")
+    return count
+
+
+def symmetry_group(count: int, height: int, width: int) -> tuple[Symmetry, ...]:
+    """``SYMMETRY_SETS[count]`` for an image of height x width, checked."""
+    if count not in SYMMETRY_SETS:
+        raise ValueError(f"symmetries: {count} is not one of {sorted(SYMMETRY_SETS)}")
+    if count == 8 and height != width:
+        raise ValueError(f"symmetries: 8 needs a square image, got {height}x{width}")
+    return SYMMETRY_SETS[count]
+
+
+#: How each kind of tensor moves: ``image`` (..., H, W) pixels alone; ``field`` (B, 2+, H, W) pixels
+#: and the x and y of dim 1; ``basis_field`` (B, N, 10, H, W) pixels and the normal's x and y of
+#: dim 2; ``bases`` (B, N, 10) the normal's x and y of dim 2.
+_MOVES = {
+    "image": lambda s, value: s.image(value, inverse=True),
+    "field": lambda s, value: s.field(value, inverse=True),
+    "basis_field": lambda s, value: s.vectors(s.image(value, inverse=True), dim=2, inverse=True),
+    "bases": lambda s, value: s.vectors(value, dim=2, inverse=True),
+}
+
+
+def sum_moved_back(group: tuple[Symmetry, ...], value: torch.Tensor, kind: str) -> torch.Tensor:
+    """The answers for the moved copies of a batch, stacked along dim 0 in the order of ``group``
+    (S x B items), each moved back by its symmetry's inverse (as a ``kind`` of ``_MOVES``) and
+    summed: (B, ...)."""
+    parts = value.chunk(len(group), dim=0)
+    total = None
+    for symmetry, part in zip(group, parts, strict=True):
+        back = _MOVES[kind](symmetry, part)
+        total = back if total is None else total + back
+    return total
+
+
+def mean_moved_back(group: tuple[Symmetry, ...], value: torch.Tensor, kind: str) -> torch.Tensor:
+    """``sum_moved_back`` divided by the number of symmetries: their mean, (B, ...)."""
+    return sum_moved_back(group, value, kind) / len(group)
