@@ -576,7 +576,8 @@ class DeepBasisNet(nn.Module):
 
         Without a local unit the global normals, all there is, are turned back and averaged.
 
-        The result is a basis output like any other (its global bases can be refined). Every input
+        The result is a basis output like any other (its global bases can be refined), without the
+        per-pixel bases, which only training reads: this is for inference. Every input
         channel must move with the photo: the photo, its log, the lighting mark and the
         ``extra_inputs`` do, made pixel by pixel from the photo and the flash."""
         from .symmetry import sum_moved_back, symmetry_group
