@@ -450,7 +450,7 @@ class NormalUnitPool(PhotographedPool):
         self.relief[slot] = relief_inputs(decode_photo(batch.inputs), batch.lights, config.synthesis.fov,
                                           config.network.convention, config.network.plane_extent,
                                           diffuse=diffuse)[0]
-        self.normals[slot] = maps[0, constants.NORMAL]
+        self.normals[slot] = batch.maps[0, constants.NORMAL]  # as photographed (``supersample``: downsampled)
 
     def batch(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """A batch of random crops, each mirrored and turned at random: (relief inputs
@@ -1011,7 +1011,9 @@ class Trainer:
 
     def materials(self) -> TrainingMaterials:
         """The run's training materials by number."""
-        return TrainingMaterials(self.config.data, self.config.size, self.config.seed, self.config.procedural)
+        # Photographed at ``supersample`` times the training size and downsampled (``synthesize``).
+        return TrainingMaterials(self.config.data, self.config.size * self.config.synthesis.supersample,
+                                 self.config.seed, self.config.procedural)
 
     def loader(self) -> DataLoader:
         dataset = self.materials()
@@ -1110,7 +1112,9 @@ class Trainer:
                       else self.config.procedural)
             maps = torch.stack([generate(VALIDATION_SEED + i, config=config).to_tensor()
                                 for i in range(self.config.validation_count)])
-            self._validation_batches[of] = synthesize(maps, torch.Generator().manual_seed(12345), self.synthesis,
+            # Photographed at their own size whatever the run's ``supersample``: the same photos every session.
+            self._validation_batches[of] = synthesize(maps, torch.Generator().manual_seed(12345),
+                                                      dataclasses.replace(self.synthesis, supersample=1),
                                                       self._extra_inputs())
         return self._validation_batches[of]
 

@@ -682,3 +682,23 @@ def test_the_local_unit_keeps_the_maps_it_is_told_to_as_its_init_gives_them(tmp_
         local_pool_config(tmp_path, init=str(source), local_pool_keep=("gloss",))
     with pytest.raises(ValueError, match="needs local_pool and init"):
         local_pool_config(tmp_path, local_pool_keep=("roughness",))
+
+
+def test_a_supersampled_run_makes_its_materials_larger_and_learns_from_them_downsampled(tmp_path):
+    from mideepbasis.train import NormalUnitPool
+
+    config = pool_config(tmp_path, synthesis={"supersample": 2})
+    trainer = Trainer(config, progress=False)
+    materials = trainer.materials()
+    assert materials[0].shape == (10, 64, 64)  # twice the training size of 32
+    pool = NormalUnitPool(materials, config, 0)
+    assert pool.relief.shape[-1] == pool.normals.shape[-1] == 32
+    assert torch.allclose(pool.normals.norm(dim=1), torch.ones(1), atol=1e-5)
+    # The pool's normals are the large material's, area-averaged and made unit.
+    from mideepbasis.capture.search import downsample_maps
+
+    torch.testing.assert_close(pool.normals[0], downsample_maps(materials[0][None], 32)[0, :3], atol=1e-6, rtol=0)
+    trainer.run()
+    assert (tmp_path / "run" / "model.safetensors").is_file()
+    # Its validation photographs the fixed materials at their own size, as every run's does.
+    assert trainer.validation_batch().photos.shape[-1] == 32

@@ -59,6 +59,17 @@ class SynthesisConfig:
     max_shift: float = 0.3
     """Largest shift of the other maps by the variation xi [unitless]."""
 
+    supersample: int = 1
+    """Photograph each material at this many times the size its maps come out at, then
+    area-downsample the photo and the maps (the normals averaged and made unit), as ``capture``
+    downsamples a 256 px photo to the network's 128 px: relief and highlights finer than a pixel
+    then reach the network blurred as they do from a photo. The materials must be made at the
+    larger size (``train`` makes them so). 1: photographed at the maps' own size."""
+
+    def __post_init__(self):
+        if not isinstance(self.supersample, int) or self.supersample < 1:
+            raise ValueError(f"supersample must be a whole number of at least 1, got {self.supersample!r}")
+
 
 # --- hand-held offsets -----------------------------------------------------------------------------
 
@@ -195,11 +206,15 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
     """Render and photograph a batch of materials and their variations (one renderer call).
 
     M and M + xi share the flash position and the camera's gains (one camera, one shot each)
-    but not the noise. ``extra_inputs``: the network's optional input channels.
+    but not the noise. ``extra_inputs``: the network's optional input channels. With
+    ``config.supersample`` F the maps are F times the batch's size: photos, maps and variations
+    come out area-downsampled by F.
     """
     from ..render import render_flash
 
-    batch = maps.shape[0]
+    batch, factor = maps.shape[0], config.supersample
+    if maps.shape[-2] % factor or maps.shape[-1] % factor:
+        raise ValueError(f"maps of {maps.shape[-2]}x{maps.shape[-1]} cannot be supersampled by {factor}")
     variation = sample_variation(batch, generator, config.max_rotation, config.max_shift)
     varied = variation.apply(maps)
     offsets = sample_offsets(batch, generator, config.fov, config.max_offset_deg, config.offset_sigma_divisor)
@@ -211,6 +226,11 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
                                 fov=config.fov, convention=config.convention)[:, 0]
     gains = sample_gains(batch, generator, config)
     photos = simulate_photo(radiance, generator, config, gains=torch.cat([gains, gains]))
+    if factor > 1:  # as capture makes a photo smaller: area averages, the normals made unit again
+        from ..capture.search import downsample, downsample_maps
+
+        size = (maps.shape[-2] // factor, maps.shape[-1] // factor)
+        photos, maps, varied = downsample(photos, size), downsample_maps(maps, size), downsample_maps(varied, size)
     inputs = encode_inputs(photos, both_lights, config.fov, config.convention, extra_inputs=extra_inputs)
     return TrainingBatch(maps=maps, varied_maps=varied, variation=variation, offsets=offsets, lights=lights,
                          inputs=inputs[:batch], varied_inputs=inputs[batch:], photos=photos[:batch],

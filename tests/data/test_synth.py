@@ -100,3 +100,46 @@ def test_synthesize_renders_both_materials_under_the_same_flash():
     expected = render_flash(batch.varied_maps, batch.lights.view(3, 1, 3), backend="torch")[:, 0].clamp(0, 1)
     assert torch.allclose(batch.varied_photos, expected, atol=1e-4)
     assert torch.equal(batch.inputs[:, 6:], batch.varied_inputs[:, 6:])  # one flash, one lighting mark
+
+
+def _noiseless(**overrides):
+    # Noise far below the tolerances (its ranges are log-uniform: they cannot be zero).
+    return synth.SynthesisConfig(exposure_sigma=0.0, white_balance_sigma=0.0, shot_noise=(1e-14, 1e-14),
+                                 read_noise=(1e-9, 1e-9), quantize=False, **overrides)
+
+
+def test_supersampled_photos_are_the_pixel_centre_photos_of_a_smooth_material():
+    # A uniform material photographed at twice the size and area-averaged must be the photo taken at
+    # the small size (each small pixel's centre is the centre of its four sub-pixels): the same to
+    # the curvature of the flash's smooth falloff over a sub-pixel.
+    small = torch.zeros(2, 10, 16, 16)
+    small[:, 2] = 1.0
+    small[:, 3:6] = 0.6
+    small[:, 6] = 0.7
+    small[:, 7:10] = 0.04
+    large = torch.nn.functional.interpolate(small, scale_factor=2, mode="nearest")
+    plain = synth.synthesize(small, torch.Generator().manual_seed(4), _noiseless())
+    supersampled = synth.synthesize(large, torch.Generator().manual_seed(4), _noiseless(supersample=2))
+    assert supersampled.photos.shape == plain.photos.shape == (2, 3, 16, 16)
+    torch.testing.assert_close(supersampled.offsets, plain.offsets)  # the same draws, in the same order
+    torch.testing.assert_close(supersampled.maps, small, atol=1e-6, rtol=0)
+    # 4e-4 seen; a downsample off by one large pixel gives 1e-2.
+    torch.testing.assert_close(supersampled.photos, plain.photos, atol=1e-3, rtol=0)
+    torch.testing.assert_close(supersampled.inputs, plain.inputs, atol=2e-3, rtol=0)
+
+
+def test_supersampled_maps_are_area_averaged_with_unit_normals():
+    large = random_maps(1, 32, seed=3)
+    batch = synth.synthesize(large, torch.Generator().manual_seed(0), _noiseless(supersample=2))
+    blocks = large.unfold(2, 2, 2).unfold(3, 2, 2).mean(dim=(-1, -2))  # (1, 10, 16, 16) by hand
+    normal = blocks[:, :3] / blocks[:, :3].norm(dim=1, keepdim=True)
+    torch.testing.assert_close(batch.maps[:, 3:], blocks[:, 3:], atol=1e-6, rtol=0)
+    torch.testing.assert_close(batch.maps[:, :3], normal, atol=1e-6, rtol=0)
+    assert batch.varied_maps.shape == batch.photos.shape[:1] + (10, 16, 16)
+
+
+def test_supersample_is_checked():
+    with pytest.raises(ValueError, match="at least 1"):
+        synth.SynthesisConfig(supersample=0)
+    with pytest.raises(ValueError, match="cannot be supersampled by 2"):
+        synth.synthesize(torch.zeros(1, 10, 15, 15), torch.Generator(), synth.SynthesisConfig(supersample=2))
