@@ -166,3 +166,19 @@ def test_evaluation_counts_the_repaired_normals(tmp_path, evaluation_dataset):
     assert summary["repaired_normal_pixels"] == 64 and summary["materials_with_repaired_normals"] == 1
     assert any("pointing into the surface" in note for note in summary["notes"])
     assert math.isfinite(summary["render_rmse"])
+
+
+def test_evaluation_averages_over_the_symmetries_capture_does_unless_told(evaluation_dataset, tmp_path):
+    from mideepbasis.capture import CaptureConfig
+
+    folder, model = evaluation_dataset
+    summaries = {}
+    for symmetries in (None, 1):
+        config = EvaluationConfig(data=str(folder), format="folder", out=str(tmp_path / str(symmetries)),
+                                  model=str(model), symmetries=symmetries)
+        with pytest.warns(UserWarning, match="skipping"):
+            summaries[symmetries] = run_evaluation(config, progress=False)
+    assert summaries[None]["symmetries"] == CaptureConfig().symmetries == 8
+    assert summaries[1]["symmetries"] == 1
+    # The averaged prediction is another prediction: its errors differ from the single pass's.
+    assert summaries[None]["maps_rmse"] != summaries[1]["maps_rmse"]
