@@ -386,8 +386,10 @@ def test_capture_outputs_load_back_render_and_validate(tmp_path, tiny_checkpoint
     truth = material(4, size=64)
     photos, _ = flash_photos(truth, torch.tensor([[0.1, -0.1]]))
     write_image(tmp_path / "shot.png", photos[0].permute(1, 2, 0).numpy(), encode_srgb=True)
+    # One pass: the untrained tiny model's bases disagree from copy to copy, and their averaged
+    # normals change from pixel to pixel more than the footprint comparison below allows.
     result = capture(tmp_path / "shot.png", model=tiny_checkpoint, resolution=64, refine=RefineConfig(steps=20),
-                     search=SearchConfig(resolution=32, grid=9))
+                     search=SearchConfig(resolution=32, grid=9), symmetries=1)
     out = save_capture(result, tmp_path / "out", exr=True, environment_spp=4)
 
     loaded = Material.load(out)

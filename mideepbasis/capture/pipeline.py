@@ -25,7 +25,7 @@ from .. import constants, geometry
 from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
-from ..model.symmetry import parse_symmetries
+from ..model.symmetry import SYMMETRY_SETS, parse_symmetries
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -68,6 +68,10 @@ class CaptureConfig:
     crop: tuple[int, int, int, int] | None = field(default=None, metadata={"metavar": "X,Y,W,H"})
     """Part of the photo that holds the sample: (x, y, width, height) [pixels of the photo as
     shown, EXIF orientation applied]; its centre square is used. None: the whole photo."""
+
+    def __post_init__(self):
+        if self.symmetries not in SYMMETRY_SETS:  # now, not at the first prediction
+            raise ValueError(f"symmetries must be one of {', '.join(map(str, SYMMETRY_SETS))}, got {self.symmetries!r}")
 
 
 @dataclass(frozen=True)
@@ -170,7 +174,8 @@ class Prediction:
 def predict_small(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
                   fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None,
                   symmetries: int = 1) -> Prediction:
-    """``predict``, its output left at the network's resolution (a ``Prediction``)."""
+    """``predict``, its output left at the network's resolution (a ``Prediction``). ``symmetries``
+    is 1 here (a single pass, as the search's), not ``CaptureConfig``'s default."""
     limit = network_resolution_limit(model, network_resolution)
     height, width = photos.shape[-2:]
     if limit and max(height, width) > limit:
@@ -192,7 +197,8 @@ def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
     bigger than in training; on the shared test set the shipped model (trained at 128 px) gave
     lower errors at 128 px upsampled than run at 256 px (benchmarks/model_quality.py).
     ``symmetries``: the answer averaged over that many turns and mirrorings of the photo
-    (``DeepBasisNet.symmetrised``).
+    (``DeepBasisNet.symmetrised``); 1 here, where ``CaptureConfig`` (and so ``Capturer.predict``)
+    defaults to ``constants.DEFAULT_SYMMETRIES``.
     """
     prediction = predict_small(model, photos, lights, fov, network_resolution, symmetries)
     output = prediction.output
@@ -211,10 +217,10 @@ def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tenso
     pad_h, pad_w = (-height) % stride, (-width) % stride
     inputs = encode_inputs(photos, lights, fov, model.config.convention, model.config.plane_extent,
                            model.config.extra_inputs)
+    if symmetries == 8 and height != width:  # the photo's own shape: its padding may make it square
+        symmetries = 4
     if pad_h or pad_w:
         inputs = F.pad(inputs, (0, pad_w, 0, pad_h), mode="reflect")
-    if symmetries == 8 and inputs.shape[-1] != inputs.shape[-2]:
-        symmetries = 4
     # A single pass names no symmetries: any model with DeepBasisNet's call serves (tests' oracles).
     options = {"symmetries": symmetries} if symmetries > 1 else {}
     with torch.no_grad():

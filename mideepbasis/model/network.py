@@ -566,13 +566,15 @@ class DeepBasisNet(nn.Module):
 
         - the weights, and the diffuse, roughness and specular of the global bases and of the
           deviations, as they are;
-        - the normals of the bases as vector fields: each basis's whole normal (global plus
-          deviation, made unit) is turned back and averaged, and kept as a deviation from the
-          global normals of the photo as it is. The global unit gives a slot the same normal
-          whichever way the photo is turned (it moves by about 0.004 when the photo does; turning
-          it back would move it by 0.2 - 0.6), so its normals cannot be averaged apart from the
-          deviations that turn them;
+        - the normals of the bases as vector fields: each basis's whole normal, global plus
+          deviation (the sum ``forward`` adds the slope to and then makes unit), is turned back and
+          averaged, and kept as a deviation from the global normals of the photo as it is. The
+          global unit gives a slot the same normal whichever way the photo is turned (it moves by
+          about 0.004 when the photo does; turning it back would move it by 0.2 - 0.6), so its
+          normals cannot be averaged apart from the deviations that turn them;
         - the normal unit's slope, shared by the bases, averaged apart and added after.
+
+        With one symmetry (the identity alone) this is ``forward`` to float rounding.
 
         Without a local unit the global normals, all there is, are turned back and averaged.
 
@@ -625,7 +627,8 @@ class DeepBasisNet(nn.Module):
                 return {"signed": (stage.signed_maps, "field")}
             return {"weights": (stage.weights, "image"), "global_bases": (stage.global_bases, "bases")}
         deviations = self.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
-        normals = normalize_basis_normals(stage.global_bases[..., None, None] + deviations, dim=2)[:, :, constants.NORMAL]
+        # Global plus deviation as they are (not made unit): the slope is added to that sum, as in ``forward``.
+        normals = (stage.global_bases[..., None, None] + deviations)[:, :, constants.NORMAL]
         parts = {"weights": (stage.weights, "image"), "global_bases": (stage.global_bases, "bases"),
                  "bases": (torch.cat([normals, deviations[:, :, constants.REFLECTANCE]], dim=2), "basis_field"),
                  "error": (stage.error, "image")}

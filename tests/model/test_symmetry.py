@@ -77,11 +77,6 @@ def test_bad_symmetry_count_and_non_square_are_refused():
     assert symmetrised_field(surface_slope, image, lights, 4).shape == (1, 2, 8, 6)
 
 
-def test_default_symmetry_is_identity():
-    field = torch.randn(1, 2, 3, 3)
-    assert torch.equal(Symmetry().field(field), field)
-
-
 # --- the network averaged over the group -------------------------------------------------------
 
 
@@ -137,7 +132,7 @@ def test_symmetrised_output_is_a_basis_output_that_refines_like_any_other():
     assert output.maps[:, 3:].min() >= 0 and output.maps[:, 3:].max() <= 1
 
 
-def test_one_symmetry_is_the_plain_network():
+def test_one_symmetry_through_forward_is_the_plain_network():
     network, photo, light = _network_and_photo(normal_unit_width=4)
     from mideepbasis.model.inputs import encode_inputs
 
@@ -157,3 +152,44 @@ def test_symmetrised_network_in_chunks_is_the_same(monkeypatch, chunk):
     # Convolutions of batches of other sizes round differently (up to 5e-5 seen in the maps).
     torch.testing.assert_close(chunked.maps, reference.maps, atol=1e-4, rtol=0)
     torch.testing.assert_close(chunked.global_bases, reference.global_bases, atol=1e-4, rtol=0)
+
+
+def test_the_identity_alone_through_the_averaging_is_the_plain_network():
+    # The averaging's own arithmetic (per-basis normals, the slope added after) must not change
+    # what the network computes: with the identity alone it is ``forward``.
+    network, photo, light = _network_and_photo(normal_unit_width=4)
+    from mideepbasis.model.inputs import encode_inputs
+
+    with torch.no_grad():
+        inputs = encode_inputs(photo, light)
+        plain = network(inputs, light)
+        averaged = network.symmetrised(inputs, light, symmetries=1)
+    assert (plain.deviations[:, :, :2].abs().max() > 0.1)  # the unit's slope is there to be got wrong
+    torch.testing.assert_close(averaged.maps, plain.maps, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("symmetry", SYMMETRY_SETS[8][1:])
+def test_the_renderer_agrees_with_the_moves(symmetry):
+    # Tied to the renderer, not to the moves themselves: the moved material under the moved flash
+    # renders to the moved photo (the normals' x and y turned as vectors).
+    from mideepbasis.render import render_flash
+
+    generator = torch.Generator().manual_seed(2)
+    maps = torch.rand(1, 10, 16, 16, generator=generator)
+    maps[:, :3] = torch.nn.functional.normalize(maps[:, :3] - torch.tensor([0.5, 0.5, -2.0]).view(1, 3, 1, 1), dim=1)
+    light = torch.tensor([[0.3, -0.2, 2.414]])
+    photo = render_flash(maps, light.view(1, 1, 3))[:, 0]
+    moved_maps = torch.cat([symmetry.field(maps[:, :3]), symmetry.image(maps[:, 3:])], dim=1)
+    moved = render_flash(moved_maps, symmetry.vectors(light).view(1, 1, 3))[:, 0]
+    torch.testing.assert_close(moved, symmetry.image(photo), atol=1e-5, rtol=1e-5)
+    # A wrong sign (the normal's x not turned) is caught.
+    wrong = moved_maps.clone()
+    wrong[:, 0] = -wrong[:, 0]
+    assert (render_flash(wrong, symmetry.vectors(light).view(1, 1, 3))[:, 0] - symmetry.image(photo)).abs().max() > 1e-3
+
+
+def test_capture_config_refuses_a_count_that_is_not_a_symmetry_set():
+    from mideepbasis.capture import CaptureConfig
+
+    with pytest.raises(ValueError, match="symmetries must be one of 1, 2, 4, 8, got 3"):
+        CaptureConfig(symmetries=3)
