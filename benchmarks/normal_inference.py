@@ -40,9 +40,9 @@ from mideepbasis.model.symmetry import symmetrised_field
 
 def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float, variants: dict) -> dict:
     """The predicted unit normals (1, 3, H, W) of a photo (1, 3, H, W) at the photo's size for each
-    variant (gain, where): the unit's raw output times the gain, its slope from the network's
-    resolution (``network``), the photo's (``photo``) or their mean (``mean``). The rest of the
-    network runs once."""
+    variant (gain, where, symmetries): the unit's raw output times the gain, its slope from the
+    network's resolution (``network``), the photo's (``photo``) or their mean (``mean``), averaged
+    over that many symmetries of the square (``model.symmetry``). The rest of the network runs once."""
     config = model.config
     size = photo.shape[-1]
     limit = network_resolution_limit(model)  # as capture runs the network: at its training resolution
@@ -66,9 +66,9 @@ def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float,
         return upsample_bilinear(field, size, size)
 
     normals = {}
-    for name, (gain, where, *rest) in variants.items():
+    for name, (gain, where, symmetries) in variants.items():
         output = DeepBasisOutput.from_bases(weights, stage.global_bases,
-                                            upsampled + slope_change(slope(gain, where, *(rest or [1])))[:, None],
+                                            upsampled + slope_change(slope(gain, where, symmetries))[:, None],
                                             keep_bases=False)
         normals[name] = output.maps[:, constants.NORMAL]
     return normals
@@ -106,8 +106,8 @@ def main() -> None:
     model = load_model(args.model)
     model.eval()
     fov = constants.DEFAULT_FOV_DEG
-    variants = {f"gain {gain:g}": (gain, "network") for gain in args.gains}
-    variants.update({"unit at 256 px": (1.0, "photo"), "mean of 128 and 256 px": (1.0, "mean")})
+    variants = {f"gain {gain:g}": (gain, "network", 1) for gain in args.gains}
+    variants.update({"unit at 256 px": (1.0, "photo", 1), "mean of 128 and 256 px": (1.0, "mean", 1)})
     variants.update({f"mean over {count} symmetries": (1.0, "network", count) for count in args.symmetries})
     variants.update({f"gain {gain:g}, mean over 8 symmetries": (gain, "network", 8) for gain in args.symmetric_gains})
 

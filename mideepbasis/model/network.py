@@ -561,8 +561,9 @@ class DeepBasisNet(nn.Module):
     def symmetrised(self, inputs: torch.Tensor, lights: torch.Tensor | None, fov: float = constants.DEFAULT_FOV_DEG,
                     with_normal_unit: bool = True, symmetries: int = 8) -> DeepBasisOutput:
         """``forward`` averaged over ``symmetries`` turns and mirrorings of the square sample
-        (``model.symmetry``; 8 needs square inputs). The network runs once on a batch of the moved
-        inputs and flashes; each part of its answer is moved back and averaged slot by slot:
+        (``model.symmetry``; 8 needs square inputs). The network runs on batches of the moved
+        inputs and flashes (``SYMMETRY_CHUNK`` copies at a time); each part of its answer is moved
+        back and averaged slot by slot:
 
         - the weights, and the diffuse, roughness and specular of the global bases and of the
           deviations, as they are;
@@ -619,8 +620,8 @@ class DeepBasisNet(nn.Module):
                      with_normal_unit: bool) -> dict[str, tuple[torch.Tensor, str]]:
         """What ``symmetrised`` averages of the network's answer to (moved) inputs, by name, each
         with how it moves (``model.symmetry._MOVES``): the signed maps of a direct network; else
-        the weights and the global bases, and with a local unit each basis's unit normal and
-        reflectance deviations, the normal unit's slope and the error map."""
+        the weights and the global bases, and with a local unit each basis's normal sum (global
+        plus deviation) and reflectance deviations, the normal unit's slope and the error map."""
         stage = self.basis_stage(inputs, lights, fov)
         if isinstance(stage, DeepBasisOutput):
             if stage.weights is None:
