@@ -242,6 +242,12 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir()
+    # Native libraries are loaded before the writer and preview threads start: a library loaded
+    # while another thread runs native code can deadlock the process (pxr's did, about one
+    # capture in ten, which is why the USD file is written as text).
+    import MaterialX  # noqa: F401
+
+    from .interchange import write_materialx, write_usd
     try:
         # PNG encoding and writing overlap with the renders; the staging folder is published whole.
         with background_writes():
@@ -292,12 +298,9 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
                 pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
                 gltf = gltf_material(material, staging, pbr=pbr)
                 write_bytes(staging / "material.gltf", _json_bytes(gltf))
-                from .interchange import usd_available, write_materialx, write_usd
-
                 # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
                 write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
-                if usd_available():
-                    write_usd(staging)
+                write_usd(staging)
                 images = traced.result()
             for name, image in images.items():
                 write_image(staging / f"{name}.png", image.clip(0, 1), encode_srgb=True)

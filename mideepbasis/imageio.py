@@ -485,9 +485,9 @@ def _encode_and_write(path: Path, kind: str, data: np.ndarray, encode_srgb: bool
         data = np.round(data * 65535.0).astype(np.uint16)
         data = data[..., 0] if data.shape[2] == 1 else data[..., ::-1]
 
-        def encode16(tmp: Path) -> None:
-            import cv2
+        import cv2  # here, not on a writer thread: a library loaded beside running threads can deadlock
 
+        def encode16(tmp: Path) -> None:
             ok, buffer = cv2.imencode(".png", np.ascontiguousarray(data))
             if not ok:
                 raise OSError("OpenCV could not encode the PNG")

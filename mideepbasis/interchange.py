@@ -108,7 +108,8 @@ def write_materialx(folder: Path, specular_factor: float) -> Path:
 
 
 def usd_available() -> bool:
-    """Whether ``usd-core`` (``pxr``) is installed (``pip install 'mideepbasis[usd]'``)."""
+    """Whether ``usd-core`` (``pxr``) is installed (``pip install 'mideepbasis[usd]'``): only to read
+    the USD files back (the tests); ``write_usd`` needs nothing."""
     try:
         import pxr  # noqa: F401
     except ImportError:
@@ -116,64 +117,94 @@ def usd_available() -> bool:
     return True
 
 
-def write_usd(folder: Path, name: str = "captured_material") -> Path:
-    """``material.usda`` in ``folder``: a 2 x 2 quad on the ground (+y up, like the glTF's) with a
-    ``UsdPreviewSurface`` (metallic workflow) reading the glTF's textures."""
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
+def _usd_texture(material: str, node: str, role: str, colour_space: str, outputs: tuple[str, ...],
+                 scale_bias: tuple[str, str] | None = None) -> str:
+    """A ``UsdUVTexture`` shader of ``usd_document`` (its attributes in USD's own sorted order)."""
+    lines = [f'        def Shader "{node}"', "        {", '            uniform token info:id = "UsdUVTexture"']
+    if scale_bias:
+        lines.append(f"            float4 inputs:bias = {scale_bias[1]}")
+    lines.append(f"            asset inputs:file = @{TEXTURES[role]}@")
+    if scale_bias:
+        lines.append(f"            float4 inputs:scale = {scale_bias[0]}")
+    lines += [f'            token inputs:sourceColorSpace = "{colour_space}"',
+              f"            float2 inputs:st.connect = </sample/{material}/st_reader.outputs:result>",
+              '            token inputs:wrapS = "clamp"', '            token inputs:wrapT = "clamp"',
+              *(f"            float{3 if output == 'rgb' else ''} outputs:{output}" for output in outputs), "        }"]
+    return "\n".join(lines)
 
+
+def usd_document(name: str = "captured_material") -> str:
+    """The text of ``material.usda`` (USD's ASCII format): a 2 x 2 quad on the ground (+y up, like
+    the glTF's) with a ``UsdPreviewSurface`` (metallic workflow) reading the glTF's textures.
+
+    Written as text rather than through ``pxr``: the document is the same for every capture but
+    for its name, and importing ``pxr`` (0.1 s) while the preview renders in another thread could
+    deadlock the process (its libraries' initialisers take the GIL while the loader's lock is held).
+    The tests read it back with ``pxr`` and run USD's validators on it."""
+    textures = "\n\n".join([
+        _usd_texture(name, "base_color_texture", "base_color", "sRGB", ("rgb",)),
+        _usd_texture(name, "metallic_roughness_texture", "metallic_roughness", "raw", ("b", "g")),
+        _usd_texture(name, "normal_texture", "normal", "raw", ("rgb",), ("(2, 2, 2, 1)", "(-1, -1, -1, 0)"))])
+    # Our +x is +X, our +y (the image's top) is -Z, as in the glTF; st runs up the image (t = 1 at the top).
+    return f"""#usda 1.0
+(
+    defaultPrim = "sample"
+    metersPerUnit = 1
+    upAxis = "Y"
+)
+
+def Xform "sample"
+{{
+    def Mesh "quad" (
+        prepend apiSchemas = ["MaterialBindingAPI"]
+    )
+    {{
+        float3[] extent = [(-1, 0, -1), (1, 0, 1)]
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 1, 2, 3]
+        rel material:binding = </sample/{name}>
+        normal3f[] normals = [(0, 1, 0), (0, 1, 0), (0, 1, 0), (0, 1, 0)] (
+            interpolation = "vertex"
+        )
+        point3f[] points = [(-1, 0, 1), (1, 0, 1), (1, 0, -1), (-1, 0, -1)]
+        texCoord2f[] primvars:st = [(0, 0), (1, 0), (1, 1), (0, 1)] (
+            interpolation = "vertex"
+        )
+    }}
+
+    def Material "{name}"
+    {{
+        token outputs:surface.connect = </sample/{name}/surface.outputs:surface>
+
+        def Shader "surface"
+        {{
+            uniform token info:id = "UsdPreviewSurface"
+            color3f inputs:diffuseColor.connect = </sample/{name}/base_color_texture.outputs:rgb>
+            float inputs:metallic.connect = </sample/{name}/metallic_roughness_texture.outputs:b>
+            normal3f inputs:normal.connect = </sample/{name}/normal_texture.outputs:rgb>
+            float inputs:roughness.connect = </sample/{name}/metallic_roughness_texture.outputs:g>
+            int inputs:useSpecularWorkflow = 0
+            token outputs:surface
+        }}
+
+        def Shader "st_reader"
+        {{
+            uniform token info:id = "UsdPrimvarReader_float2"
+            string inputs:varname = "st"
+            float2 outputs:result
+        }}
+
+{textures}
+    }}
+}}
+
+"""
+
+
+def write_usd(folder: Path, name: str = "captured_material") -> Path:
+    """``material.usda`` in ``folder`` (``usd_document``), written whole or not at all."""
     path = Path(folder) / "material.usda"
     temporary = path.with_name(f".{path.stem}.tmp-{os.getpid()}.usda")
-    stage = Usd.Stage.CreateNew(str(temporary))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    root = UsdGeom.Xform.Define(stage, "/sample")
-    stage.SetDefaultPrim(root.GetPrim())
-    mesh = UsdGeom.Mesh.Define(stage, "/sample/quad")
-    # Our +x is +X, our +y (the image's top) is -Z, as in the glTF; st runs up the image (t = 1 at the top).
-    mesh.CreatePointsAttr([(-1, 0, 1), (1, 0, 1), (1, 0, -1), (-1, 0, -1)])
-    mesh.CreateFaceVertexCountsAttr([4])
-    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    mesh.CreateNormalsAttr([(0, 1, 0)] * 4)
-    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
-    mesh.CreateExtentAttr([(-1, 0, -1), (1, 0, 1)])
-    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
-    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
-
-    material = UsdShade.Material.Define(stage, f"/sample/{name}")
-    surface = UsdShade.Shader.Define(stage, f"/sample/{name}/surface")
-    surface.CreateIdAttr("UsdPreviewSurface")
-    surface.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(0)
-    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
-    reader = UsdShade.Shader.Define(stage, f"/sample/{name}/st_reader")
-    reader.CreateIdAttr("UsdPrimvarReader_float2")
-    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    reader_output = reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
-
-    def texture(node_name, role, colour_space, scale=None, bias=None):
-        shader = UsdShade.Shader.Define(stage, f"/sample/{name}/{node_name}")
-        shader.CreateIdAttr("UsdUVTexture")
-        shader.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(TEXTURES[role])
-        shader.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(colour_space)
-        shader.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader_output)
-        for key in ("wrapS", "wrapT"):
-            shader.CreateInput(key, Sdf.ValueTypeNames.Token).Set("clamp")
-        if scale is not None:
-            shader.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*scale))
-            shader.CreateInput("bias", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*bias))
-        return shader
-
-    base = texture("base_color_texture", "base_color", "sRGB")
-    packed = texture("metallic_roughness_texture", "metallic_roughness", "raw")
-    normal = texture("normal_texture", "normal", "raw", scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0))
-    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
-        base.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
-    surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).ConnectToSource(
-        packed.CreateOutput("g", Sdf.ValueTypeNames.Float))
-    surface.CreateInput("metallic", Sdf.ValueTypeNames.Float).ConnectToSource(
-        packed.CreateOutput("b", Sdf.ValueTypeNames.Float))
-    surface.CreateInput("normal", Sdf.ValueTypeNames.Normal3f).ConnectToSource(
-        normal.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
-    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
-    stage.GetRootLayer().Save()
+    temporary.write_text(usd_document(name))
     os.replace(temporary, path)
     return path

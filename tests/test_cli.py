@@ -129,7 +129,7 @@ def test_console_command_runs_the_demo(tmp_path):
     assert result.returncode == 0, result.stderr
     for name in ["normal.png", "diffuse.png", "roughness.png", "specular.png", "material.json", "light.json",
                  "rerender.png", "environment.png", "preview_sphere.png", "preview_cloth.png", "scene.xml",
-                 "material.gltf", "report.html", "report.png"]:
+                 "material.gltf", "material.mtlx", "material.usda", "report.html", "report.png"]:
         assert (tmp_path / "demo" / name).is_file(), name
     assert "map RMSE against the ground truth: normal" in result.stdout
     material = Material.load(tmp_path / "demo")

@@ -15,7 +15,7 @@ from mideepbasis.material import Material
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """A material folder with its glTF, MaterialX and (where usd-core is installed) USD exports."""
+    """A material folder with its glTF, MaterialX and USD exports."""
     folder = tmp_path_factory.mktemp("exported")
     generator = torch.Generator().manual_seed(0)
     size = 16
@@ -28,8 +28,7 @@ def exported(tmp_path_factory):
     gltf = gltf_material(material, folder)
     (folder / "material.gltf").write_text(json.dumps(gltf))
     write_materialx(folder, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
-    if usd_available():
-        write_usd(folder)
+    write_usd(folder)
     return folder, gltf
 
 
@@ -87,3 +86,18 @@ def test_usd_validates_and_carries_the_gltf(exported):
     assert sources == {"roughness": "g", "metallic": "b", "diffuseColor": "rgb"}
     mesh = stage.GetPrimAtPath("/sample/quad")
     assert UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()[0].GetPath().name == "captured_material"
+
+
+@pytest.mark.skipif(not usd_available(), reason="usd-core is not installed (pip install 'mideepbasis[usd]')")
+def test_the_usd_text_is_what_usd_itself_writes_and_takes_the_material_name(tmp_path):
+    """``write_usd`` writes the text by hand: USD, given the stage it describes, writes the same bytes."""
+    from pxr import Sdf, Usd, UsdShade
+
+    path = write_usd(tmp_path, name="brick_wall")
+    stage = Usd.Stage.Open(str(path))
+    mesh = stage.GetPrimAtPath("/sample/quad")
+    assert UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()[0].GetPath() == Sdf.Path("/sample/brick_wall")
+    rewritten = tmp_path / "rewritten.usda"
+    stage.GetRootLayer().Export(str(rewritten))
+    assert rewritten.read_text() == path.read_text()
+    assert not list(tmp_path.glob(".*"))  # no temporary left
