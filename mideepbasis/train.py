@@ -204,6 +204,14 @@ class TrainConfig:
     procedural materials the unit trades the roughness for the diffuse on the shared test set
     (MODEL.md); kept, the roughness cannot drift. Costs one more local-unit pass a step."""
 
+    highlight_weight: float = 0.0
+    """Extra weight of the diffuse map's loss under the flash's highlight, for the local unit alone
+    (``local_pool``): each pixel's diffuse error weighs 1 + w * (the true specular lobe's
+    brightness under the photo's flash, over its 99th percentile, at most 1), divided by the
+    material's mean of that (``highlight_weights``). The
+    highlight covers a few percent of a photo, so the plain loss hardly minds a highlight baked
+    into the diffuse map (issue 11's demo smudge); 0: off."""
+
     normal_pool_loss: str = field(default="mse", metadata={"choices": ("mse", "crop_rmse")})
     """Loss of the normal pool (``normal_unit_loss``): ``mse``, the mean squared error over the
     batch; ``crop_rmse``, the mean over crops of each crop's RMSE, as ``evaluate`` averages the
@@ -259,6 +267,8 @@ class TrainConfig:
         unknown = [name for name in self.local_pool_keep if name not in constants.MAP_SLICES]
         if unknown:
             raise ValueError(f"local_pool_keep: unknown maps {unknown}; known: {list(constants.MAP_SLICES)}")
+        if self.highlight_weight < 0 or (self.highlight_weight and not self.local_pool):
+            raise ValueError(f"highlight_weight {self.highlight_weight} must be 0, or positive with local_pool")
         if self.local_pool_keep and not (self.local_pool and self.init):
             raise ValueError("local_pool_keep keeps maps as the init gives them: it needs local_pool and init")
 
@@ -486,6 +496,9 @@ class LocalUnitBatch:
     maps: torch.Tensor
     """(B, 10, H, W) the true maps."""
 
+    diffuse_weights: torch.Tensor | None = None
+    """(B, 1, H, W) weights of the diffuse loss (``TrainConfig.highlight_weight``), or None: 1."""
+
 
 class LocalUnitPool(PhotographedPool):
     """The training data of the local unit alone (``TrainConfig.local_pool``): for each material of
@@ -502,18 +515,50 @@ class LocalUnitPool(PhotographedPool):
         self.global_bases = torch.empty(count, n, constants.BASIS_CHANNELS)
         self.slope = torch.empty(count, 2, size, size)
         self.maps = torch.empty(count, 10, size, size)
+        self.diffuse_weights = torch.empty(count, 1, size, size) if config.highlight_weight else None
         super().__init__(materials, config, step, count, config.local_pool_refresh)
 
     def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
         local_inputs, weights, global_bases, slope = self.stage_of(batch.inputs, batch.lights)
         self.local_inputs[slot], self.weights[slot], self.global_bases[slot] = local_inputs[0], weights[0], global_bases[0]
         self.slope[slot], self.maps[slot] = slope[0], batch.maps[0]
+        if self.diffuse_weights is not None:
+            config = self.config
+            self.diffuse_weights[slot] = highlight_weights(batch.maps, batch.lights, config.highlight_weight,
+                                                           config.synthesis.fov, config.network.convention,
+                                                           config.network.plane_extent)[0]
 
     def batch(self, generator: torch.Generator) -> LocalUnitBatch:
         """``config.batch`` materials of the pool, drawn at random."""
         slots = torch.randint(0, self.size, (self.config.batch,), generator=generator)
         return LocalUnitBatch(self.local_inputs[slots], self.weights[slots], self.global_bases[slots],
-                              self.slope[slots], self.maps[slots])
+                              self.slope[slots], self.maps[slots],
+                              None if self.diffuse_weights is None else self.diffuse_weights[slots])
+
+
+#: The lobe's brightness that weighs fully in ``highlight_weights``: its 99th percentile.
+HIGHLIGHT_PEAK_QUANTILE = 0.99
+
+
+def highlight_weights(maps: torch.Tensor, lights: torch.Tensor, weight: float, fov: float, convention: str,
+                      extent: float = 1.0) -> torch.Tensor:
+    """Per-pixel weights (B, 1, H, W) of the diffuse loss: 1 + ``weight`` * the specular lobe alone
+    (the maps (B, 10, H, W) with their diffuse set to zero) rendered under the flashes at
+    ``lights`` (B, 3), as luminance over its ``HIGHLIGHT_PEAK_QUANTILE`` (at most 1); then divided
+    by their mean, so that the highlight moves the loss within a material, not its scale. A
+    material without specular weighs 1 everywhere."""
+    from .render import render_flash
+
+    specular_only = maps.clone()
+    specular_only[:, constants.DIFFUSE] = 0.0
+    with torch.no_grad():
+        rgb = render_flash(specular_only, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
+    lobe = (0.2126 * rgb[:, 0] + 0.7152 * rgb[:, 1] + 0.0722 * rgb[:, 2])[:, None]
+    # A percentile rather than the maximum: the glints of a bumpy glossy sample would set the scale.
+    peak = torch.quantile(lobe.flatten(1), HIGHLIGHT_PEAK_QUANTILE, dim=1).view(-1, 1, 1, 1)
+    share = torch.where(peak > 0, lobe / peak.clamp_min(1e-12), torch.zeros_like(lobe)).clamp(max=1.0)
+    weights = 1.0 + weight * share
+    return weights / weights.mean(dim=(2, 3), keepdim=True)
 
 
 def normals_over_flat(raw_slope: torch.Tensor) -> torch.Tensor:
@@ -567,11 +612,17 @@ def channel_weights(normal_weight: float, device=None) -> torch.Tensor:
 
 
 def supervised_loss(output: DeepBasisOutput, maps: torch.Tensor, normal_weight: float = 1.0,
-                    signed_target: torch.Tensor | None = None) -> torch.Tensor:
+                    signed_target: torch.Tensor | None = None,
+                    diffuse_weights: torch.Tensor | None = None) -> torch.Tensor:
     """(Weighted) L1 between the predicted blend and the ground truth ``maps`` (or, given, the
-    target already in signed space), in signed space."""
+    target already in signed space), in signed space; ``diffuse_weights`` (B, 1, H, W) weigh the
+    diffuse channels' pixels (``highlight_weights``)."""
     target = to_signed(maps) if signed_target is None else signed_target
     difference = (output.signed_maps - target).abs()
+    if diffuse_weights is not None:
+        difference = torch.cat([difference[:, :constants.DIFFUSE.start],
+                                difference[:, constants.DIFFUSE] * diffuse_weights,
+                                difference[:, constants.DIFFUSE.stop:]], dim=1)
     return (difference * channel_weights(normal_weight, maps.device)).mean()
 
 
@@ -966,7 +1017,8 @@ class Trainer:
             for name in config.local_pool_keep:
                 channels = constants.MAP_SLICES[name]
                 maps[:, channels], signed_target[:, channels] = kept.maps[:, channels], kept.signed_maps[:, channels]
-        sup = supervised_loss(output, maps, config.normal_weight, signed_target)
+        diffuse_weights = None if batch.diffuse_weights is None else batch.diffuse_weights.to(self.device)
+        sup = supervised_loss(output, maps, config.normal_weight, signed_target, diffuse_weights)
         loss, losses = self._with_rendering_loss(sup, output.maps, maps)
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": 0.0, "l_saturation": 0.0, **losses,

@@ -684,6 +684,63 @@ def test_the_local_unit_keeps_the_maps_it_is_told_to_as_its_init_gives_them(tmp_
         local_pool_config(tmp_path, local_pool_keep=("roughness",))
 
 
+def test_the_highlight_weights_peak_under_the_flash_and_keep_the_loss_scale():
+    from mideepbasis.train import highlight_weights
+
+    size = 33
+    maps = torch.zeros(2, 10, size, size)
+    maps[:, 2] = 1.0  # flat
+    maps[:, 3:6] = 0.3
+    maps[:, 6] = 0.2
+    maps[0, 7:] = 0.5
+    # Flash straight above the centre: a flat sample mirrors it back from the centre pixel only,
+    # and less the farther a pixel is from it.
+    lights = torch.tensor([[0.0, 0.0, 2.0]]).expand(2, 3)
+    weights = highlight_weights(maps, lights, 8.0, fov=45.0, convention="physical")
+    assert weights.shape == (2, 1, size, size)
+    torch.testing.assert_close(weights.mean(dim=(2, 3)), torch.ones(2, 1))
+    glossy = weights[0, 0]
+    centre = size // 2
+    assert glossy[centre, centre] == glossy.max()  # the brightest 1 % share the full weight
+    row = glossy[centre, centre:]
+    assert bool((row[1:] <= row[:-1] + 1e-6).all()) and row[-1] < 0.5 * row[0]
+    # The brightest 1 % weighs 1 + 8 against 1 for an unlit pixel (before the division by the mean).
+    assert float(glossy.max() / glossy.min()) == pytest.approx(9.0, rel=0.05)
+    # No specular: nothing to weigh.
+    torch.testing.assert_close(weights[1], torch.ones(1, size, size))
+
+
+def test_the_diffuse_weights_weigh_the_diffuse_error_of_each_pixel():
+    from mideepbasis.train import supervised_loss
+
+    truth = torch.full((1, 10, 2, 2), 0.5)
+    predicted = truth.clone()
+    predicted[0, 3, 0, 0] += 0.1  # one diffuse error
+    predicted[0, 6, 1, 1] += 0.1  # one roughness error
+    output = DeepBasisOutput(maps=predicted)
+    weights = torch.ones(1, 1, 2, 2)
+    plain = supervised_loss(output, truth)
+    torch.testing.assert_close(supervised_loss(output, truth, diffuse_weights=weights), plain)
+    weights[0, 0, 0, 0] = 3.0  # the diffuse error counts three times, the roughness's once
+    torch.testing.assert_close(supervised_loss(output, truth, diffuse_weights=weights), 2.0 * plain)
+    weights[0, 0, 0, 0], weights[0, 0, 1, 1] = 1.0, 5.0  # the roughness pixel: its diffuse is right
+    torch.testing.assert_close(supervised_loss(output, truth, diffuse_weights=weights), plain)
+
+
+def test_the_local_pool_stores_the_highlight_weights_of_its_materials(tmp_path):
+    trainer = Trainer(local_pool_config(tmp_path, highlight_weight=4.0), progress=False)
+    pool = trainer.unit_pool()
+    batch = pool.batch(torch.Generator().manual_seed(0))
+    assert batch.diffuse_weights.shape == (2, 1, 32, 32)
+    assert float(pool.diffuse_weights[0].mean()) == pytest.approx(1.0)
+    assert trainer.train_step(batch)["loss"] > 0
+    assert Trainer(local_pool_config(tmp_path / "off"), progress=False).unit_pool().diffuse_weights is None
+    with pytest.raises(ValueError, match="positive with local_pool"):
+        tiny_config(tmp_path, highlight_weight=2.0)
+    with pytest.raises(ValueError, match="positive with local_pool"):
+        local_pool_config(tmp_path, highlight_weight=-1.0)
+
+
 def test_a_supersampled_run_makes_its_materials_larger_and_learns_from_them_downsampled(tmp_path):
     from mideepbasis.train import NormalUnitPool
 
