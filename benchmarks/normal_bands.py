@@ -151,7 +151,7 @@ class DihedralAverage(torch.nn.Module):
 
     def forward(self, relief: torch.Tensor) -> torch.Tensor:
         from mideepbasis.model.inputs import RELIEF_DIRECTION_CHANNEL
-        from mideepbasis.train import dihedral
+        from mideepbasis.model.symmetry import dihedral
 
         total = 0.0
         for mirror, turns in self.moves:

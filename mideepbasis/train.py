@@ -41,6 +41,7 @@ from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
 from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, relief_channels, relief_inputs
 from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, slope_change, to_signed
+from .model.symmetry import dihedral
 
 
 @dataclass
@@ -380,28 +381,6 @@ def augment(maps: torch.Tensor, size: int, rng: np.random.Generator) -> torch.Te
     maps = dihedral(maps, 0, bool(rng.random() < 0.5), int(rng.integers(4)))
     maps[constants.NORMAL] = torch.nn.functional.normalize(maps[constants.NORMAL], dim=0)
     return maps
-
-
-def dihedral(image: torch.Tensor, vector_channel: int | None, mirror: bool, turns: int) -> torch.Tensor:
-    """An image of the sample plane mirrored left-right (x -> -x), then turned by ``turns`` quarter
-    turns counter-clockwise ((x, y) -> (-y, x)), with the in-plane vector whose x and y are channels
-    ``vector_channel`` and ``vector_channel + 1`` (None: no vector) turned with it (a normal, a
-    direction). A flash photo of the material so moved, under the flash so moved, is the photo so
-    moved.
-
-    Args:
-        image: (..., C, H, W), square; returned as a new tensor.
-    """
-    image = image.flip(-1) if mirror else image.clone()
-    if vector_channel is None:
-        return image.rot90(turns % 4, dims=(-2, -1))
-    x, y = vector_channel, vector_channel + 1
-    if mirror:
-        image[..., x, :, :] = -image[..., x, :, :]
-    for _ in range(turns % 4):
-        image = image.rot90(1, dims=(-2, -1))
-        image[..., [x, y], :, :] = torch.stack([-image[..., y, :, :], image[..., x, :, :]], dim=-3)
-    return image
 
 
 class PhotographedPool:

@@ -400,7 +400,7 @@ def moved_point(point: torch.Tensor, mirror: bool, turns: int) -> torch.Tensor:
 def test_a_moved_material_under_the_moved_flash_photographs_as_the_moved_photo(mirror, turns):
     from mideepbasis.model.inputs import RELIEF_DIRECTION_CHANNEL, relief_inputs
     from mideepbasis.render import render_flash
-    from mideepbasis.train import dihedral
+    from mideepbasis.model.symmetry import dihedral
 
     maps = generate(3, config=GeneratorConfig(size=32)).to_tensor()[None]
     light = torch.tensor([0.3, -0.5, 2.2])
@@ -422,7 +422,8 @@ def pool_config(tmp_path, **overrides):
 
 def test_the_normal_pool_at_a_step_is_the_same_reached_or_rebuilt(tmp_path):
     from mideepbasis.model.inputs import RELIEF_DIRECTION_CHANNEL
-    from mideepbasis.train import NormalUnitPool, TrainingMaterials, dihedral
+    from mideepbasis.model.symmetry import dihedral
+    from mideepbasis.train import NormalUnitPool, TrainingMaterials
 
     config = pool_config(tmp_path)
     materials = TrainingMaterials(config.data, config.size, config.seed)

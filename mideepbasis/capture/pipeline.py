@@ -25,7 +25,7 @@ from .. import constants, geometry
 from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
-from ..model.symmetry import SYMMETRY_SETS, parse_symmetries
+from ..model.symmetry import check_symmetries, parse_symmetries
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -70,8 +70,7 @@ class CaptureConfig:
     shown, EXIF orientation applied]; its centre square is used. None: the whole photo."""
 
     def __post_init__(self):
-        if self.symmetries not in SYMMETRY_SETS:  # now, not at the first prediction
-            raise ValueError(f"symmetries must be one of {', '.join(map(str, SYMMETRY_SETS))}, got {self.symmetries!r}")
+        check_symmetries(self.symmetries)  # now, not at the first prediction
 
 
 @dataclass(frozen=True)

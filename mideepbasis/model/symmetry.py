@@ -92,18 +92,54 @@ def symmetrised_field(function: Callable[[torch.Tensor, torch.Tensor], torch.Ten
 
 
 
-def parse_symmetries(text: str) -> int:
-    """A count of symmetries from the command line: one of ``SYMMETRY_SETS``."""
-    count = int(text)
+def _plane_matrix(symmetry: Symmetry) -> tuple[int, ...]:
+    """The symmetry's action on the plane's (x, y), a 2 x 2 integer matrix, row by row."""
+    images = symmetry.vectors(torch.eye(2), dim=1).round().int()  # rows: the images of (1, 0) and (0, 1)
+    return tuple(images.T.flatten().tolist())
+
+
+def mirror_and_turns(mirror: bool, turns: int) -> Symmetry:
+    """The symmetry that mirrors the sample left-right (x -> -x) when ``mirror``, then turns it by
+    ``turns`` quarter turns counter-clockwise ((x, y) -> (-y, x)): how training draws its moves."""
+    c, s = ((1, 0), (0, 1), (-1, 0), (0, -1))[turns % 4]  # cos and sin of the turn
+    m = -1 if mirror else 1
+    target = (c * m, -s, s * m, c)  # turn @ mirror
+    return next(symmetry for symmetry in SYMMETRY_SETS[8] if _plane_matrix(symmetry) == target)
+
+
+def dihedral(image: torch.Tensor, vector_channel: int | None, mirror: bool, turns: int) -> torch.Tensor:
+    """An image of the sample plane moved by ``mirror_and_turns(mirror, turns)``, with the in-plane
+    vector whose x and y are channels ``vector_channel`` and ``vector_channel + 1`` (None: no
+    vector) moved with it (a normal, a direction). A flash photo of the material so moved, under
+    the flash so moved, is the photo so moved.
+
+    Args:
+        image: (..., C, H, W), square; returned as a new tensor.
+    """
+    symmetry = mirror_and_turns(mirror, turns)
+    moved = symmetry.image(image)
+    if vector_channel is None:  # a transpose is a view, the identity the image itself: copied
+        moved = moved.contiguous()
+        return moved.clone() if moved.untyped_storage().data_ptr() == image.untyped_storage().data_ptr() else moved
+    before, vector, after = moved.split([vector_channel, 2, moved.shape[-3] - vector_channel - 2], dim=-3)
+    return torch.cat([before, symmetry.vectors(vector, dim=-3), after], dim=-3)
+
+
+def check_symmetries(count) -> int:
+    """``count`` if it is a count of ``SYMMETRY_SETS``, else a one-line ValueError."""
     if count not in SYMMETRY_SETS:
-        raise ValueError(f"must be one of {', '.join(map(str, sorted(SYMMETRY_SETS)))}, got {count}")
+        raise ValueError(f"symmetries must be one of {', '.join(map(str, SYMMETRY_SETS))}, got {count!r}")
     return count
+
+
+def parse_symmetries(text: str) -> int:
+    """A count of symmetries from the command line (``check_symmetries``)."""
+    return check_symmetries(int(text))
 
 
 def symmetry_group(count: int, height: int, width: int) -> tuple[Symmetry, ...]:
     """``SYMMETRY_SETS[count]`` for an image of height x width, checked."""
-    if count not in SYMMETRY_SETS:
-        raise ValueError(f"symmetries: {count} is not one of {sorted(SYMMETRY_SETS)}")
+    check_symmetries(count)
     if count == 8 and height != width:
         raise ValueError(f"symmetries: 8 needs a square image, got {height}x{width}")
     return SYMMETRY_SETS[count]

@@ -70,7 +70,7 @@ def test_symmetrised_field_removes_the_part_that_breaks_the_symmetry():
 
 def test_bad_symmetry_count_and_non_square_are_refused():
     image, lights = torch.rand(1, 3, 8, 6), torch.zeros(1, 3)
-    with pytest.raises(ValueError, match="3 is not one of"):
+    with pytest.raises(ValueError, match="symmetries must be one of 1, 2, 4, 8, got 3"):
         symmetrised_field(surface_slope, image, lights, 3)
     with pytest.raises(ValueError, match="square"):
         symmetrised_field(surface_slope, image, lights, 8)
@@ -193,3 +193,31 @@ def test_capture_config_refuses_a_count_that_is_not_a_symmetry_set():
 
     with pytest.raises(ValueError, match="symmetries must be one of 1, 2, 4, 8, got 3"):
         CaptureConfig(symmetries=3)
+
+
+def mirrored_and_turned(image: torch.Tensor, vector_channel: int | None, mirror: bool, turns: int) -> torch.Tensor:
+    """The reference of ``dihedral``, written with torch's own turn: flip the columns, then
+    ``rot90`` quarter turn by quarter turn, the vector's x and y mirrored and turned alongside."""
+    image = image.flip(-1) if mirror else image.clone()
+    x = vector_channel
+    if x is not None and mirror:
+        image[..., x, :, :] = -image[..., x, :, :]
+    for _ in range(turns % 4):
+        image = image.rot90(1, dims=(-2, -1))
+        if x is not None:
+            image[..., [x, x + 1], :, :] = torch.stack([-image[..., x + 1, :, :], image[..., x, :, :]], dim=-3)
+    return image
+
+
+@pytest.mark.parametrize("mirror", [False, True])
+@pytest.mark.parametrize("turns", [-1, 0, 1, 2, 3, 4])
+def test_dihedral_is_the_mirror_then_the_quarter_turns_bit_for_bit(mirror, turns):
+    # Training draws its moves as (mirror, turns): the same tensors as before they became symmetries.
+    from mideepbasis.model.symmetry import dihedral, mirror_and_turns
+
+    image = torch.randn(2, 7, 6, 6)
+    for channel in (None, 0, 3, 5):
+        moved = dihedral(image, channel, mirror, turns)
+        assert torch.equal(moved, mirrored_and_turned(image, channel, mirror, turns)), channel
+        assert moved.data_ptr() != image.data_ptr()
+    assert mirror_and_turns(mirror, turns) in SYMMETRY_SETS[8]
