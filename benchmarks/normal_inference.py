@@ -29,7 +29,7 @@ from normal_bands import flat_normals, stored_rmse
 
 from mideepbasis import constants
 from mideepbasis.capture.pipeline import network_resolution_limit
-from mideepbasis.capture.search import downsample
+from mideepbasis.resampling import downsample
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.evaluation.protocol import evaluation_offsets, flash_photos, load_evaluation_materials
 from mideepbasis.model.checkpoint import load_model

@@ -208,7 +208,7 @@ PREVIEW_MAP_SIZE = 2 * constants.PREVIEW_RESOLUTION
 def preview_maps(maps: torch.Tensor, most: int = PREVIEW_MAP_SIZE) -> torch.Tensor:
     """(10, H, W) maps as a preview is given them: unchanged (the same tensor) when neither side
     exceeds ``most``, else area-averaged so that the longer side is ``most``, normals renormalised."""
-    from .capture.search import downsample_maps
+    from .resampling import downsample_maps
 
     height, width = maps.shape[-2:]
     if max(height, width) <= most:

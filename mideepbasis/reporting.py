@@ -146,7 +146,7 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
     figure took 2.8 s of a 4-s save (issue 14)."""
     from PIL import Image, ImageDraw, ImageFont
 
-    from .capture.search import downsample, downsample_maps
+    from .resampling import downsample, downsample_maps
 
     # The panels are REPORT_TILE pixels wide: larger images are area-averaged (in linear light) to
     # twice that before their sRGB encoding, which took 1.4 s of a 2048 px capture's report.

@@ -341,7 +341,7 @@ def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_an
 @pytest.mark.parametrize("small,large,resolution", [(32, 64, 16), (37, 150, 16), (128, 2048, 64), (20, 20, 8)])
 def test_the_refinement_resamples_by_one_matrix_per_axis(small, large, resolution):
     from mideepbasis.capture.refine import upsample_then_average
-    from mideepbasis.capture.search import downsample
+    from mideepbasis.resampling import downsample
     from mideepbasis.model.network import upsample_bilinear
 
     image = torch.rand(2, 3, small, small + 5, generator=torch.Generator().manual_seed(small))

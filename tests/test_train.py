@@ -753,7 +753,7 @@ def test_a_supersampled_run_makes_its_materials_larger_and_learns_from_them_down
     assert pool.relief.shape[-1] == pool.normals.shape[-1] == 32
     assert torch.allclose(pool.normals.norm(dim=1), torch.ones(1), atol=1e-5)
     # The pool's normals are the large material's, area-averaged and made unit.
-    from mideepbasis.capture.search import downsample_maps
+    from mideepbasis.resampling import downsample_maps
 
     torch.testing.assert_close(pool.normals[0], downsample_maps(materials[0][None], 32)[0, :3], atol=1e-6, rtol=0)
     trainer.run()

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from .. import constants
 from ..configs import positive_int
 from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps
-from .search import downsample
+from ..resampling import downsample
 
 
 @dataclass(frozen=True)

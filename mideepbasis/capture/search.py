@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
 import torch
-import torch.nn.functional as F
 
 from .. import constants, geometry
 from ..configs import positive_int
+from ..resampling import downsample, downsample_maps
 
 
 class Predicted(Protocol):
@@ -76,22 +76,6 @@ class SearchResult:
 
     output: Predicted
     """The last pass's prediction (its maps at the search's network resolution)."""
-
-
-def downsample(image: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
-    """Area-average (..., C, H, W) to size x size, or to (height, width) (no-op when already there)."""
-    height, width = (size, size) if isinstance(size, int) else size
-    if tuple(image.shape[-2:]) == (height, width):
-        return image
-    shape = image.shape
-    flat = image.reshape(-1, *shape[-3:])
-    return F.interpolate(flat, size=(height, width), mode="area").reshape(*shape[:-2], height, width)
-
-
-def downsample_maps(maps: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
-    """Maps (B, 10, H, W) area-averaged to size x size (or (height, width)), their normals renormalised."""
-    small = downsample(maps, size)
-    return torch.cat([F.normalize(small[:, constants.NORMAL], dim=1), small[:, constants.REFLECTANCE]], dim=1)
 
 
 def candidate_offsets(fov: float, max_offset_deg: float, grid: int, centre=(0.0, 0.0), span: float | None = None) -> torch.Tensor:

@@ -227,7 +227,7 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
     gains = sample_gains(batch, generator, config)
     photos = simulate_photo(radiance, generator, config, gains=torch.cat([gains, gains]))
     if factor > 1:  # as capture makes a photo smaller: area averages, the normals made unit again
-        from ..capture.search import downsample, downsample_maps
+        from ..resampling import downsample, downsample_maps
 
         size = (maps.shape[-2] // factor, maps.shape[-1] // factor)
         photos, maps, varied = downsample(photos, size), downsample_maps(maps, size), downsample_maps(varied, size)

@@ -133,7 +133,7 @@ def load_evaluation_set(data: str | Path, format: str) -> tuple[list[str], torch
 
 def resize_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
     """Maps (10, H, W) resampled to (10, size, size) by area averaging, the normals renormalised."""
-    from ..capture.search import downsample_maps
+    from ..resampling import downsample_maps
 
     return downsample_maps(maps[None], size)[0]
 
