@@ -27,7 +27,7 @@ import os
 import time
 from pathlib import Path
 
-import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
+import mideepbasis  # noqa: F401  (sets the OpenMP spin before torch loads)
 import numpy as np
 import torch
 from common import RESULTS, SHARED_TEST, run_generator_settings, save_figure, slope_correlation, write_report

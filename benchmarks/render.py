@@ -19,7 +19,7 @@ import statistics
 import time
 from pathlib import Path
 
-import mideepbasis  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
+import mideepbasis  # noqa: F401  (sets the OpenMP spin before torch loads)
 import torch
 
 from common import RESULTS, write_report

@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import os
 
-# torch's OpenMP workers spin after every parallel region by default; drjit's LLVM kernels then
-# share the cores with spinning threads, which doubles the time of a render between two torch
-# ops on a small machine. Passive waiting frees the cores at once (a user's own setting wins).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# torch's OpenMP workers spin after every parallel region, 300,000 turns by default: drjit's LLVM
+# kernels then share the cores with spinning threads, which triples the time of a render between
+# two torch ops on a small machine (benchmarks/render.py). Not spinning at all (passive waiting)
+# makes every op of a network pass wake its threads: a capture's prediction took a quarter longer.
+# A short spin serves both (measured on 2 cores; a user's own setting of either variable wins).
+if "OMP_WAIT_POLICY" not in os.environ:
+    os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
 from .errors import InputError, MideepbasisError  # noqa: E402
 from .imageio import ImageIOError, read_image, write_image  # noqa: E402

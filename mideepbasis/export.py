@@ -242,11 +242,8 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir()
-    # Native libraries are loaded before the writer and preview threads start: a library loaded
-    # while another thread runs native code can deadlock the process (pxr's did, about one
-    # capture in ten, which is why the USD file is written as text).
-    import MaterialX  # noqa: F401
-
+    # The MaterialX and USD files are written as text: loading pxr while the preview thread ran
+    # deadlocked about one capture in ten (a library loaded beside running threads can).
     from .interchange import write_materialx, write_usd
     try:
         # PNG encoding and writing overlap with the renders; the staging folder is published whole.

@@ -16,7 +16,6 @@ metallic in B, as glTF packs them), ``normal.png`` (linear, (n + 1) / 2, +y up) 
 
 from __future__ import annotations
 
-import functools
 import os
 from pathlib import Path
 
@@ -25,84 +24,64 @@ TEXTURES = {"base_color": "base_color.png", "metallic_roughness": "metallic_roug
             "normal": "normal.png", "specular_color": "specular_color.png"}
 
 
-@functools.lru_cache(maxsize=1)
-def _standard_library():
-    """MaterialX's standard data library, loaded once per process (30 - 160 ms a load)."""
-    import MaterialX as mx
+def materialx_document(specular_factor: float, name: str = "captured_material") -> str:
+    """The text of ``material.mtlx``: an Autodesk Standard Surface reading the glTF's textures
+    through a node graph, ``specular`` the glTF's specular factor (six significant digits, as
+    MaterialX writes floats).
 
-    library = mx.createDocument()
-    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), library)
-    return library
+    Written as text rather than through the MaterialX API: the document is the same for every
+    capture but for one float, and building and validating it took 0.2 s of each capture's
+    Python time, beside the preview thread that needs the interpreter too. The tests read it
+    back with MaterialX, validate it against the standard library and check that MaterialX writes
+    it back the same."""
+    graph = f"NG_{name}"
 
+    def image(node: str, role: str, kind: str, colour: bool) -> str:
+        colour_space = ' colorspace="srgb_texture"' if colour else ""
+        return (f'    <image name="{node}" type="{kind}">\n'
+                f'      <input name="file" type="filename" value="{TEXTURES[role]}"{colour_space} />\n'
+                "    </image>\n")
 
-def materialx_document(specular_factor: float, name: str = "captured_material"):
-    """The MaterialX document (``MaterialX.Document``, standard library imported) of a capture."""
-    import MaterialX as mx
+    def extract(channel: str, index: int) -> str:
+        return (f'    <extract name="{channel}_channel" type="float">\n'
+                '      <input name="in" type="vector3" nodename="metallic_roughness_image" />\n'
+                f'      <input name="index" type="integer" value="{index}" />\n'
+                "    </extract>\n")
 
-    document = mx.createDocument()
-    document.importLibrary(_standard_library())
-    graph = document.addNodeGraph(f"NG_{name}")
-
-    def image(node_name, filename, kind, colour_space=None):
-        node = graph.addNode("image", node_name, kind)
-        file_input = node.addInput("file", "filename")
-        file_input.setValueString(filename)
-        if colour_space:
-            file_input.setColorSpace(colour_space)
-        return node
-
-    base = image("base_color_image", TEXTURES["base_color"], "color3", "srgb_texture")
-    packed = image("metallic_roughness_image", TEXTURES["metallic_roughness"], "vector3")
-    specular = image("specular_color_image", TEXTURES["specular_color"], "color3", "srgb_texture")
-    normal_image = image("normal_image", TEXTURES["normal"], "vector3")
-    channels = {}
-    for channel, index in (("roughness", 1), ("metalness", 2)):
-        node = graph.addNode("extract", f"{channel}_channel", "float")
-        node.addInput("in", "vector3").setConnectedNode(packed)
-        node.setInputValue("index", index)
-        channels[channel] = node
-    normal = graph.addNode("normalmap", "normal_map", "vector3")
-    normal.addInput("in", "vector3").setConnectedNode(normal_image)
-    outputs = {}
-    for output_name, node, kind in (("base_color", base, "color3"), ("specular_color", specular, "color3"),
-                                    ("specular_roughness", channels["roughness"], "float"),
-                                    ("metalness", channels["metalness"], "float"), ("normal", normal, "vector3")):
-        output = graph.addOutput(f"{output_name}_output", kind)
-        output.setConnectedNode(node)
-        outputs[output_name] = output
-
-    shader = document.addNode("standard_surface", f"SR_{name}", "surfaceshader")
-    for input_name, kind in (("base_color", "color3"), ("specular_color", "color3"), ("specular_roughness", "float"),
-                             ("metalness", "float"), ("normal", "vector3")):
-        shader.addInput(input_name, kind).setConnectedOutput(outputs[input_name])
-    shader.setInputValue("base", 1.0)
-    shader.setInputValue("specular", float(specular_factor))
-    shader.setInputValue("specular_IOR", 1.5)
-    document.addMaterialNode(name, shader)
-    return document
-
-
-#: Whether this process has validated a capture's MaterialX document (``write_materialx``).
-_VALIDATED: list[bool] = []
+    outputs = (("base_color", "color3", "base_color_image"), ("specular_color", "color3", "specular_color_image"),
+               ("specular_roughness", "float", "roughness_channel"), ("metalness", "float", "metalness_channel"),
+               ("normal", "vector3", "normal_map"))
+    return ('<?xml version="1.0"?>\n<materialx version="1.39">\n'
+            f'  <nodegraph name="{graph}">\n'
+            + image("base_color_image", "base_color", "color3", True)
+            + image("metallic_roughness_image", "metallic_roughness", "vector3", False)
+            + image("specular_color_image", "specular_color", "color3", True)
+            + image("normal_image", "normal", "vector3", False)
+            + extract("roughness", 1) + extract("metalness", 2)
+            + '    <normalmap name="normal_map" type="vector3">\n'
+              '      <input name="in" type="vector3" nodename="normal_image" />\n'
+              "    </normalmap>\n"
+            + "".join(f'    <output name="{output}_output" type="{kind}" nodename="{node}" />\n'
+                      for output, kind, node in outputs)
+            + "  </nodegraph>\n"
+            f'  <standard_surface name="SR_{name}" type="surfaceshader">\n'
+            + "".join(f'    <input name="{output}" type="{kind}" output="{output}_output" nodegraph="{graph}" />\n'
+                      for output, kind, _ in outputs)
+            + '    <input name="base" type="float" value="1" />\n'
+            f'    <input name="specular" type="float" value="{float(specular_factor):.6g}" />\n'
+            '    <input name="specular_IOR" type="float" value="1.5" />\n'
+            "  </standard_surface>\n"
+            f'  <surfacematerial name="{name}" type="material">\n'
+            f'    <input name="surfaceshader" type="surfaceshader" nodename="SR_{name}" />\n'
+            "  </surfacematerial>\n</materialx>\n")
 
 
 def write_materialx(folder: Path, specular_factor: float) -> Path:
-    """``material.mtlx`` in ``folder`` (the textures must be there), checked by MaterialX's validator
-    (the first of a process)."""
-    import MaterialX as mx
-
-    document = materialx_document(specular_factor)
-    # The documents differ only in the specular factor, a float: validated once per process (60 ms).
-    if not _VALIDATED:
-        valid, message = document.validate()
-        if not valid:  # a bug of ours, not of the user's input
-            raise RuntimeError(f"MaterialX rejected the document: {message}")
-        _VALIDATED.append(True)
-    options = mx.XmlWriteOptions()
-    options.elementPredicate = lambda element: not element.hasSourceUri()  # not the standard library
+    """``material.mtlx`` in ``folder`` (``materialx_document``; the textures must be there),
+    written whole or not at all."""
     path = Path(folder) / "material.mtlx"
     temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    mx.writeToXmlFile(document, str(temporary), options)
+    temporary.write_text(materialx_document(specular_factor))
     os.replace(temporary, path)
     return path
 

@@ -526,6 +526,25 @@ def test_a_capture_imports_neither_dynamo_nor_plotting_libraries(tmp_path):
     assert result.stdout.strip().splitlines()[-1] == "[]"
 
 
+def test_importing_the_package_sets_a_short_openmp_spin_unless_the_user_chose():
+    # Set before torch loads OpenMP (which reads it once): a short spin, not passive waiting.
+    import os
+    import subprocess
+    import sys
+
+    script = "import mideepbasis, os; print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))"
+    clean = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+
+    def printed(**extra):
+        result = subprocess.run([sys.executable, "-c", script], env={**clean, **extra}, capture_output=True,
+                                text=True, timeout=120)
+        return result.stdout.split()
+
+    assert printed() == ["1000", "None"]
+    assert printed(OMP_WAIT_POLICY="PASSIVE") == ["None", "PASSIVE"]
+    assert printed(GOMP_SPINCOUNT="5") == ["5", "None"]
+
+
 def test_the_public_capture_is_callable_as_design_promises(tmp_path):
     # DESIGN section 4: `from mideepbasis import capture; capture("photo.jpg")`, in a fresh process.
     import subprocess

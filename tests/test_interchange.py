@@ -59,6 +59,20 @@ def test_materialx_validates_and_carries_the_gltf(exported):
     assert extracts == {"roughness_channel": 1, "metalness_channel": 2}  # glTF packs roughness in G, metallic in B
 
 
+@pytest.mark.parametrize("factor", [1.30061, 1.0, 0.25, 2.0 / 3.0, 12345.678, 1.5e-05])
+def test_the_materialx_text_is_what_materialx_itself_writes(tmp_path, factor):
+    """``write_materialx`` writes the text by hand: MaterialX, reading it, writes the same bytes."""
+    import MaterialX as mx
+
+    path = write_materialx(tmp_path, factor)
+    document = mx.createDocument()
+    mx.readFromXmlFile(document, str(path))
+    assert mx.writeToXmlString(document) == path.read_text()
+    specular = document.getNodes("standard_surface")[0].getInputValue("specular")
+    assert specular == pytest.approx(factor, rel=1e-5)
+    assert not list(tmp_path.glob(".*"))  # no temporary left
+
+
 @pytest.mark.skipif(not usd_available(), reason="usd-core is not installed (pip install 'mideepbasis[usd]')")
 def test_usd_validates_and_carries_the_gltf(exported):
     from pxr import Usd, UsdShade, UsdValidation
