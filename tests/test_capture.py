@@ -205,6 +205,20 @@ def test_a_settled_search_stops_once_the_light_moves_by_a_grid_step_or_less(monk
     assert found.offset == pytest.approx((leaping.step, 3 * leaping.step), abs=1e-5)
 
 
+def test_an_over_relaxed_search_moves_past_the_best_candidate_on_the_grid(monkeypatch):
+    from mideepbasis.capture import search as search_module
+
+    # A light that creeps one step right each pass until it stays at four steps.
+    photo = torch.zeros(3, 8, 8)
+    for relaxation, lights in ((1.0, [(0, 0), (1, 0), (2, 0), (3, 0), (4, 0)]), (2.0, [(0, 0), (2, 0), (4, 0)])):
+        steered = SteeredSearch([(1, 0), (2, 0), (3, 0), (4, 0)], loop_to=3)
+        monkeypatch.setattr(search_module, "light_objective", steered.objective)
+        found = search_module.search_light(steered.predict, photo, 45.0, "physical",
+                                           config=SearchConfig(resolution=4, prior=0.0, relaxation=relaxation))
+        assert [tuple(round(float(v) / steered.step) for v in light) for light in steered.predicted_under] == lights
+        assert found.offset == pytest.approx((4 * steered.step, 0.0), abs=1e-5)
+
+
 def test_refinement_lowers_the_error_and_moves_only_the_global_bases():
     truth = material(5)
     photos, lights = flash_photos(truth, torch.tensor([[0.2, 0.1]]))
