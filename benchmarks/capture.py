@@ -4,7 +4,8 @@
 
 Every configuration runs in a fresh process (so its peak resident memory is its own) on the
 bundled example photo, warm (one untimed capture first, which compiles the render kernels), and
-reports the median wall time of the repeats [s]:
+reports the median wall time of the repeats [s] and their median CPU time (user + system, all
+threads; for the commands, their processes') [s]:
 
 - ``known_light``: prediction with the flash offset given (no search, no refinement);
 - ``search``: lighting search and prediction;
@@ -65,14 +66,16 @@ def measure(name: str, model: str | None, repeats: int) -> dict:
     refine = RefineConfig(**settings.pop("refine", {}))
     capturer = Capturer(model, CaptureConfig(refine=refine, **settings))
     capturer.capture(photo)  # warm-up: kernels compiled
-    runs, stages = [], []
+    runs, cpu, stages = [], [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         result = capturer.capture(photo)
         runs.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)  # every thread of this process
         stages.append(result.timings)
     median_stages = {stage: statistics.median(s[stage] for s in stages) for stage in stages[0]}
     return {"median_s": statistics.median(runs), "runs_s": [round(r, 3) for r in runs],
+            "cpu_median_s": round(statistics.median(cpu), 3),
             "stages_median_s": {k: round(v, 3) for k, v in median_stages.items()},
             "peak_memory_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
@@ -82,18 +85,26 @@ def measure_command(model: str | None, repeats: int, extra: tuple[str, ...] = ()
     from mideepbasis.render.api import example_capture_dir
 
     photo = example_capture_dir() / "photo.jpg"
-    runs, peak = [], 0.0
+    runs, cpu, peak = [], [], 0.0
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as folder:
             command = [sys.executable, "-m", "mideepbasis.cli", "capture", str(photo), "-o", str(Path(folder) / "out"),
                        *extra]
             if model:
                 command += ["--model", model]
-            start = time.perf_counter()
+            start, before = time.perf_counter(), children_cpu_s()
             subprocess.run(command, check=True, capture_output=True)
             runs.append(time.perf_counter() - start)
+            cpu.append(children_cpu_s() - before)
             peak = max(peak, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024)
-    return {"median_s": statistics.median(runs), "runs_s": [round(r, 3) for r in runs], "peak_memory_mib": peak}
+    return {"median_s": statistics.median(runs), "runs_s": [round(r, 3) for r in runs],
+            "cpu_median_s": round(statistics.median(cpu), 3), "peak_memory_mib": peak}
+
+
+def children_cpu_s() -> float:
+    """User plus system CPU time of this process's finished children [s]."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def make_batch_photos(folder: Path, count: int, seed: int = 5) -> list[Path]:
@@ -127,7 +138,7 @@ def measure_batch(model: str | None, count: int, extra: list[str]) -> dict:
         command = [sys.executable, "-m", "mideepbasis.cli", "capture", str(shots), "-o", str(Path(folder) / "out"), *extra]
         if model:
             command += ["--model", model]
-        start = time.perf_counter()
+        start, before = time.perf_counter(), children_cpu_s()
         done = []
         with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
                               env={**os.environ, "PYTHONUNBUFFERED": "1"}) as process:
@@ -138,7 +149,8 @@ def measure_batch(model: str | None, count: int, extra: list[str]) -> dict:
         if process.returncode != 0 or len(done) != count:
             raise SystemExit(f"batch capture failed ({len(done)} of {count} photos)")
     rate = (count - 1) / (done[-1] - done[0]) if count > 1 else float("nan")
-    return {"photos": count, "options": extra, "median_s": wall, "first_photo_s": round(done[0], 2),
+    return {"photos": count, "options": extra, "median_s": wall, "cpu_s": round(children_cpu_s() - before, 2),
+            "first_photo_s": round(done[0], 2),
             "photos_per_second_after_first": round(rate, 3),
             "peak_memory_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}
 
@@ -174,7 +186,7 @@ def main() -> None:
                 command += ["--model", args.model]
             output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
             results[name] = json.loads(output.strip().splitlines()[-1])
-            print(f"{name:20s} {results[name]['median_s']:.1f} s for {args.batch} photos, "
+            print(f"{name:20s} {results[name]['median_s']:.1f} s ({results[name]['cpu_s']:.1f} s CPU) for {args.batch} photos, "
                   f"{results[name]['photos_per_second_after_first']:.2f} photos/s after the first "
                   f"(target 1), peak {results[name]['peak_memory_mib']:.0f} MiB")
             continue
@@ -185,7 +197,8 @@ def main() -> None:
         output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
         results[name] = json.loads(output.strip().splitlines()[-1])
         print(f"{name:20s} {results[name]['median_s']:.2f} s (target {TARGETS_S[name]} s), "
-              f"peak {results[name]['peak_memory_mib']:.0f} MiB, stages {results[name].get('stages_median_s', '-')}")
+              f"CPU {results[name]['cpu_median_s']:.2f} s, peak {results[name]['peak_memory_mib']:.0f} MiB, "
+              f"stages {results[name].get('stages_median_s', '-')}")
     if args.only and args.output.exists():  # a partial run updates the measurements it made
         results = {**json.loads(args.output.read_text()).get("results", {}), **results}
     write_report(args.output, "capture", {"photo": "bundled example (512x512 JPEG)", "targets_s": TARGETS_S,
