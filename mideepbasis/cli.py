@@ -97,7 +97,7 @@ def _run_render(args) -> None:
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".heic", ".heif", ".exr")
 
 
-def _add_capture(subparsers) -> None:
+def _add_capture(subparsers, describe: bool = True) -> None:
     from .capture import CaptureConfig
     from .configs import add_config_arguments
 
@@ -108,7 +108,7 @@ def _add_capture(subparsers) -> None:
     parser.add_argument("photos", type=Path, nargs="+", metavar="PHOTO", help="JPEG, PNG or EXR flash photos, or folders of them")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
     # Every CaptureConfig field is an option (--refine-steps, --search-grid, ...), documented by the field.
-    add_config_arguments(parser, CaptureConfig)
+    add_config_arguments(parser, CaptureConfig, describe=describe)
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
@@ -350,7 +350,7 @@ def _run_import_weights(args) -> None:
     print(f"wrote {path}: use it with --model in capture and evaluate")
 
 
-def _add_train(subparsers) -> None:
+def _add_train(subparsers, describe: bool = True) -> None:
     from .configs import add_config_arguments
     from .model.network import PRESETS
     from .train import TrainConfig
@@ -364,7 +364,8 @@ def _add_train(subparsers) -> None:
     parser.add_argument("--preset", choices=sorted(PRESETS), default=argparse.SUPPRESS,
                         help="network preset the --network-* settings start from (default: compact)")
     # Every other TrainConfig field is an option (--steps, --network-num-bases, --synthesis-read-noise, ...).
-    add_config_arguments(parser, TrainConfig, skip={"out", "preset", "synthesis.convention", "procedural.size"})
+    add_config_arguments(parser, TrainConfig, skip={"out", "preset", "synthesis.convention", "procedural.size"},
+                         describe=describe)
     parser.set_defaults(run=_run_train)
 
 
@@ -399,10 +400,11 @@ def _run_train(args) -> None:
               f"best weights so far in {args.out / 'best.safetensors'}")
 
 
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+def build_parser(command: str | None = None, describe: bool = True) -> argparse.ArgumentParser:
     """The command line's parser. Given the ``command`` about to run, the other sub-commands get
     only their name and help line: building them imports what they need (train's parser alone
-    took 0.2 s of a capture's start)."""
+    took 0.2 s of a capture's start). ``describe`` False leaves out the help of the options made
+    from config fields (``add_config_arguments``), for a command line that prints no help."""
     parser = argparse.ArgumentParser(prog="mideepbasis", description="SVBRDF capture from one hand-held flash photo.")
     subparsers = parser.add_subparsers(dest="command", required=True)
     adders = {"render": _add_render, "capture": _add_capture, "demo": _add_demo, "data": _add_data,
@@ -410,14 +412,21 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     for name, add in adders.items():
         if command in adders and name != command:
             subparsers.add_parser(name, help=COMMAND_HELP[name])
+        elif name in _DESCRIBED_COMMANDS:
+            add(subparsers, describe)
         else:
             add(subparsers)
     return parser
 
 
+#: The sub-commands whose options are made from config fields (their help read from the source).
+_DESCRIBED_COMMANDS = ("capture", "train")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    args = build_parser(argv[0] if argv else None).parse_args(argv)
+    wants_help = any(argument in ("-h", "--help") for argument in argv)
+    args = build_parser(argv[0] if argv else None, describe=wants_help).parse_args(argv)
     warnings.formatwarning = lambda message, category, *rest: f"mideepbasis: warning: {message}\n"
     try:
         status = args.run(args)

@@ -182,3 +182,12 @@ def test_a_parser_built_for_its_command_parses_as_the_whole_one(argv):
     assert vars(cli.build_parser(argv[0]).parse_args(argv)) == vars(cli.build_parser().parse_args(argv))
     whole = cli.build_parser().format_help()
     assert cli.build_parser(argv[0]).format_help() == whole  # every command still listed, with its line
+    # Without the fields' help (no -h on the line): the same options, parsed the same.
+    assert vars(cli.build_parser(argv[0], describe=False).parse_args(argv)) == vars(cli.build_parser().parse_args(argv))
+
+
+def test_the_options_help_is_their_fields_docstrings_when_help_is_asked_for(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["capture", "--help"])
+    # SearchConfig.relaxation's docstring, folded by argparse.
+    assert "How far a pass moves the light toward the best" in " ".join(capsys.readouterr().out.split())
