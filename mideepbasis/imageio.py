@@ -14,6 +14,7 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import contextvars
+import functools
 import os
 import secrets
 import struct
@@ -137,9 +138,9 @@ def read_image(
     if magic.startswith(_PNG_MAGIC):
         image = _read_png(path, max_pixels, reduce)
     elif magic.startswith(_JPEG_MAGIC):
-        image = _read_pil(path, JpegImagePlugin.JpegImageFile, max_pixels, reduce)
+        return _read_pil(path, JpegImagePlugin.JpegImageFile, max_pixels, reduce, decode_srgb)
     elif magic[4:8] == b"ftyp" and magic[8:12] in _HEIF_BRANDS:
-        image = _read_pil(path, _open_heif, max_pixels, reduce)
+        return _read_pil(path, _open_heif, max_pixels, reduce, decode_srgb)
     elif not magic:
         raise ImageIOError(f"cannot read '{path}': file is empty")
     else:
@@ -249,7 +250,14 @@ def _read_png(path: Path, max_pixels: int, reduce: int = 1) -> np.ndarray:
     return _reduced(_orient(image, orientation), reduce)
 
 
-def _read_pil(path: Path, opener: Callable[[Path], Image.Image], max_pixels: int, reduce: int = 1) -> np.ndarray:
+@functools.lru_cache(maxsize=1)
+def _srgb_table() -> np.ndarray:
+    """``srgb_to_linear`` of the 256 8-bit codes (as ``k / 255`` in float32, as they are read)."""
+    return srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255.0))
+
+
+def _read_pil(path: Path, opener: Callable[[Path], Image.Image], max_pixels: int, reduce: int = 1,
+              decode_srgb: bool = False) -> np.ndarray:
     # The format plugins open lazily (header only) and, unlike Image.open, do not apply Pillow's
     # own decompression-bomb limit, so `max_pixels` is the one limit that applies.
     try:
@@ -274,7 +282,9 @@ def _read_pil(path: Path, opener: Callable[[Path], Image.Image], max_pixels: int
     if has_alpha:
         _warn_alpha(path)
     data = data[..., None] if data.ndim == 2 else data
-    return _orient(data.astype(np.float32) / 255.0, orientation)
+    # 8-bit codes decoded by table: the same values as the curve on k / 255, without its float64
+    # powers over every pixel (0.08 s of a 512 px photo's first read).
+    return _orient(_srgb_table()[data] if decode_srgb else data.astype(np.float32) / 255.0, orientation)
 
 
 def _exif_from_bytes(raw: bytes | None) -> Image.Exif:

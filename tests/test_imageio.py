@@ -191,6 +191,21 @@ def test_srgb_on_read_and_write(tmp_path):
     np.testing.assert_allclose(read_image(path), 153 / 255, atol=1e-7)
 
 
+@pytest.mark.parametrize("mode", ["RGB", "L"])
+def test_an_8_bit_photo_decoded_by_table_is_the_curve_on_its_codes(tmp_path, mode):
+    # JPEG (and HEIC) colour is decoded through a 256-entry table: the very values of the curve.
+    codes = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    image = Image.fromarray(codes if mode == "L" else np.stack([codes, codes[::-1], codes.T], axis=-1))
+    path = tmp_path / "codes.jpg"
+    image.save(path, quality=100)
+    for reduce in (1, 2):
+        decoded = read_image(path, decode_srgb=True, reduce=reduce)
+        plain = read_image(path, reduce=reduce)
+        assert decoded.dtype == np.float32 and decoded.shape == plain.shape
+        assert np.array_equal(decoded, srgb_to_linear(plain))
+    np.testing.assert_allclose(read_image(path, decode_srgb=True), srgb_eotf_reference(read_image(path)), atol=1e-6)
+
+
 # --- EXIF, alpha, modes ----------------------------------------------------------------------------
 
 
