@@ -28,7 +28,6 @@ from pathlib import Path
 import mideepbasis  # noqa: F401
 import numpy as np
 import torch
-import torch.nn.functional as F
 from common import RESULTS, shared_predictions, write_report
 
 from mideepbasis import constants, geometry
@@ -36,6 +35,7 @@ from mideepbasis.capture import CaptureConfig, Capturer
 from mideepbasis.material import Material
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.render.api import example_capture_dir
+from mideepbasis.resampling import downsample_maps
 
 #: Share of the pixels, the brightest of the specular lobe's render, that make the highlight region.
 HIGHLIGHT_SHARE = 0.05
@@ -43,7 +43,7 @@ HIGHLIGHT_SHARE = 0.05
 
 def luminance(rgb: torch.Tensor) -> torch.Tensor:
     """(B, 3, H, W) -> (B, H, W), Rec. 709 weights."""
-    return 0.2126 * rgb[:, 0] + 0.7152 * rgb[:, 1] + 0.0722 * rgb[:, 2]
+    return sum(weight * rgb[:, channel] for channel, weight in enumerate(constants.LUMINANCE_WEIGHTS))
 
 
 def highlight_leak(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, fov: float,
@@ -51,13 +51,9 @@ def highlight_leak(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.T
     """Per-material leak (B,) of predicted maps into their diffuse under the flash at ``lights``
     (B, 3), relative and in albedo units (NaN where the lobe marks no region: a material without
     specular), and the highlight regions (B, H, W) bool. Maps (B, 10, H, W)."""
-    from mideepbasis.render import render_flash
+    from mideepbasis.train import specular_lobe
 
-    specular_only = truth.clone()
-    specular_only[:, constants.DIFFUSE] = 0.0
-    with torch.no_grad():
-        lobe = luminance(render_flash(specular_only, lights.view(-1, 1, 3), fov=fov, convention=convention,
-                                      extent=extent)[:, 0])
+    lobe = specular_lobe(truth, lights, fov, convention, extent)[:, 0]
     threshold = torch.quantile(lobe.flatten(1), 1.0 - HIGHLIGHT_SHARE, dim=1).view(-1, 1, 1)
     region = lobe >= threshold
     excess = luminance(predicted[:, constants.DIFFUSE]) - luminance(truth[:, constants.DIFFUSE])
@@ -86,8 +82,7 @@ def main() -> None:
     recipe = json.loads((folder / "truth.json").read_text())
     result = Capturer(model, CaptureConfig()).capture(folder / "photo.jpg")
     size = result.material.width
-    demo_maps = F.interpolate(Material.load(folder / "truth").to_tensor()[None], size=(size, size), mode="area")
-    demo_maps[:, constants.NORMAL] = F.normalize(demo_maps[:, constants.NORMAL], dim=1)
+    demo_maps = downsample_maps(Material.load(folder / "truth").to_tensor()[None], size)
     demo_light = geometry.light_positions(torch.tensor([recipe["offset"]]), recipe["fov_deg"])
     demo_leak, demo_albedo_leak, demo_region = highlight_leak(result.material.to_tensor()[None], demo_maps, demo_light,
                                                               recipe["fov_deg"], convention, model.config.plane_extent)

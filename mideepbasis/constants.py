@@ -20,6 +20,10 @@ MAX_OFFSET_DEG = 16.33
 #: Training offsets are drawn per axis from N(0, (delta / OFFSET_SIGMA_DIVISOR)^2) and clipped at delta.
 OFFSET_SIGMA_DIVISOR = 3.0
 
+#: Relative luminance of linear sRGB / Rec. 709 primaries (weights sum to 1, so a grey of value g
+#: has luminance g; this keeps the scalar metallic equations of ``Material.to_pbr`` exact).
+LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
+
 #: Default working resolution of captures and training crops [pixels].
 DEFAULT_RESOLUTION = 256
 

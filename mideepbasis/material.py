@@ -46,10 +46,6 @@ _DEFAULT_ENCODING = {
 _NORMAL_ENCODINGS = ("signed", "signed-directx", "unsigned-opengl", "unsigned-directx")
 _VALUE_ENCODINGS = ("srgb", "linear")
 
-#: Relative luminance of linear sRGB / Rec. 709 primaries (weights sum to 1, so a grey of value g
-#: has luminance g; this keeps the scalar metallic equations of to_pbr exact).
-_LUMINANCE = (0.2126, 0.7152, 0.0722)
-
 #: Deschaintre et al. 2018 strips: (width, height) -> (panels, panel size, crop offset) [pixels].
 _DESCHAINTRE_LAYOUTS = {(1440, 288): (5, 288, 16), (1280, 256): (5, 256, 0), (2048, 512): (4, 512, 0)}
 
@@ -458,7 +454,7 @@ def _metallic_roughness(diffuse: torch.Tensor, specular: torch.Tensor, dielectri
     """(base colour (3, h, w), metallic (1, h, w)) of diffuse and specular (3, h, w): the
     arithmetic of ``Material.to_pbr``, in float64."""
     d, s = diffuse.double(), specular.double()
-    weights = torch.tensor(_LUMINANCE, dtype=torch.float64).reshape(3, 1, 1)
+    weights = torch.tensor(constants.LUMINANCE_WEIGHTS, dtype=torch.float64).reshape(3, 1, 1)
     lum_d, lum_s = (weights * d).sum(0, keepdim=True), (weights * s).sum(0, keepdim=True)
     f0 = float(dielectric_f0)
     excess = (lum_s - f0).clamp(min=0)

@@ -515,6 +515,19 @@ class LocalUnitPool(PhotographedPool):
                               None if self.diffuse_weights is None else self.diffuse_weights[slots])
 
 
+def specular_lobe(maps: torch.Tensor, lights: torch.Tensor, fov: float, convention: str,
+                  extent: float = 1.0) -> torch.Tensor:
+    """The luminance (B, 1, H, W) of the maps' (B, 10, H, W) specular lobe alone (their diffuse
+    set to zero) rendered under the flashes at ``lights`` (B, 3): where the highlight is."""
+    from .render import render_flash
+
+    specular_only = maps.clone()
+    specular_only[:, constants.DIFFUSE] = 0.0
+    with torch.no_grad():
+        rgb = render_flash(specular_only, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
+    return sum(weight * rgb[:, channel] for channel, weight in enumerate(constants.LUMINANCE_WEIGHTS))[:, None]
+
+
 #: The lobe's brightness that weighs fully in ``highlight_weights``: its 99th percentile.
 HIGHLIGHT_PEAK_QUANTILE = 0.99
 
@@ -526,13 +539,7 @@ def highlight_weights(maps: torch.Tensor, lights: torch.Tensor, weight: float, f
     ``lights`` (B, 3), as luminance over its ``HIGHLIGHT_PEAK_QUANTILE`` (at most 1); then divided
     by their mean, so that the highlight moves the loss within a material, not its scale. A
     material without specular weighs 1 everywhere."""
-    from .render import render_flash
-
-    specular_only = maps.clone()
-    specular_only[:, constants.DIFFUSE] = 0.0
-    with torch.no_grad():
-        rgb = render_flash(specular_only, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
-    lobe = (0.2126 * rgb[:, 0] + 0.7152 * rgb[:, 1] + 0.0722 * rgb[:, 2])[:, None]
+    lobe = specular_lobe(maps, lights, fov, convention, extent)
     # A percentile rather than the maximum: the glints of a bumpy glossy sample would set the scale.
     peak = torch.quantile(lobe.flatten(1), HIGHLIGHT_PEAK_QUANTILE, dim=1).view(-1, 1, 1, 1)
     share = torch.where(peak > 0, lobe / peak.clamp_min(1e-12), torch.zeros_like(lobe)).clamp(max=1.0)

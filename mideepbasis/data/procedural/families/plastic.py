@@ -14,6 +14,7 @@ import math
 import cv2
 import numpy as np
 
+from .... import constants
 from ..core import MILLIMETRE, Canvas, Surface, dielectric_f0, hsv_color, planar, smoothstep
 from ..registry import family
 
@@ -148,7 +149,7 @@ def _plastic_color(canvas: Canvas) -> np.ndarray:
 
 def _luminance(color) -> float:
     """Relative luminance of a linear colour (3,)."""
-    return float(np.dot(np.asarray(color, np.float32).ravel()[:3], (0.2126, 0.7152, 0.0722)))
+    return float(np.dot(np.asarray(color, np.float32).ravel()[:3], constants.LUMINANCE_WEIGHTS))
 
 
 def _ink_color(canvas: Canvas, against=None) -> np.ndarray:
