@@ -16,8 +16,9 @@ metallic in B, as glTF packs them), ``normal.png`` (linear, (n + 1) / 2, +y up) 
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
+
+from .imageio import write_bytes
 
 #: The texture files the three exports share, by role.
 TEXTURES = {"base_color": "base_color.png", "metallic_roughness": "metallic_roughness.png",
@@ -79,21 +80,7 @@ def materialx_document(specular_factor: float, name: str = "captured_material") 
 def write_materialx(folder: Path, specular_factor: float) -> Path:
     """``material.mtlx`` in ``folder`` (``materialx_document``; the textures must be there),
     written whole or not at all."""
-    path = Path(folder) / "material.mtlx"
-    temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    temporary.write_text(materialx_document(specular_factor))
-    os.replace(temporary, path)
-    return path
-
-
-def usd_available() -> bool:
-    """Whether ``usd-core`` (``pxr``) is installed (``pip install 'mideepbasis[usd]'``): only to read
-    the USD files back (the tests); ``write_usd`` needs nothing."""
-    try:
-        import pxr  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return write_bytes(Path(folder) / "material.mtlx", materialx_document(specular_factor).encode())
 
 
 def _usd_texture(material: str, node: str, role: str, colour_space: str, outputs: tuple[str, ...],
@@ -182,8 +169,4 @@ def Xform "sample"
 
 def write_usd(folder: Path, name: str = "captured_material") -> Path:
     """``material.usda`` in ``folder`` (``usd_document``), written whole or not at all."""
-    path = Path(folder) / "material.usda"
-    temporary = path.with_name(f".{path.stem}.tmp-{os.getpid()}.usda")
-    temporary.write_text(usd_document(name))
-    os.replace(temporary, path)
-    return path
+    return write_bytes(Path(folder) / "material.usda", usd_document(name).encode())

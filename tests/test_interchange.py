@@ -9,8 +9,17 @@ import pytest
 import torch
 
 from mideepbasis.export import gltf_material
-from mideepbasis.interchange import usd_available, write_materialx, write_usd
+from mideepbasis.interchange import write_materialx, write_usd
 from mideepbasis.material import Material
+
+
+def usd_available() -> bool:
+    """Whether ``usd-core`` (``pxr``), which reads the USD files back, is installed (the ``usd`` extra)."""
+    try:
+        import pxr  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 @pytest.fixture(scope="module")
