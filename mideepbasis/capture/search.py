@@ -149,11 +149,9 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
                 output = predict(photo[None], geometry.light_positions(light[None], fov))
             current = passes[seen + (last + 1 - seen) % period][0]
             break
-        if config.relaxation == 1.0:
-            current = best
-        else:  # beyond the best candidate, on the grid
-            target = current + config.relaxation * (best - current)
-            current = candidates[int(torch.argmin((candidates - target).square().sum(dim=-1)))]
+        # Toward the best candidate (relaxation 1: to it), snapped to the grid.
+        target = current + config.relaxation * (best - current)
+        current = candidates[int(torch.argmin((candidates - target).square().sum(dim=-1)))]
     # A finer grid around the last candidate, with the material of the last pass.
     fine = candidate_offsets(fov, config.max_offset_deg, 9, centre=tuple(current.tolist()), span=step)
     errors = objective(small_maps, fine)
