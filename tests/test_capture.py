@@ -168,11 +168,13 @@ def test_a_search_going_round_a_cycle_stops_early_where_all_its_passes_would_end
                                            config=SearchConfig(resolution=4, prior=0.0, passes=passes))
         offset, last_light = steered.reference(passes)
         assert found.offset == pytest.approx(offset, abs=1e-5), passes
-        # Its prediction is the last pass's, as if every pass had run.
-        torch.testing.assert_close(found.output.maps[0, 3:5, 0, 0], last_light, atol=1e-5, rtol=0)
-        # One network pass per light until the cycle closes, never more than allowed; then, where
-        # the last pass would have been another than the latest, that one's prediction again.
+        # One network pass per light until the cycle closes, never more than allowed.
         lights, cycle_start = len(steered.route), steered.loop_to
+        assert steered.predictions == min(passes, lights), passes
+        # Its prediction is the last pass's, as if every pass had run: where the last pass would
+        # have been another than the latest, that one's prediction again, once, when first read.
+        torch.testing.assert_close(found.output.maps[0, 3:5, 0, 0], last_light, atol=1e-5, rtol=0)
+        found.output
         last = cycle_start + (passes - 1 - cycle_start) % (lights - cycle_start)
         expected = passes if passes <= lights else lights + (last != lights - 1)
         assert steered.predictions == expected, passes
@@ -217,6 +219,41 @@ def test_an_over_relaxed_search_moves_past_the_best_candidate_on_the_grid(monkey
                                            config=SearchConfig(resolution=4, prior=0.0, relaxation=relaxation))
         assert [tuple(round(float(v) / steered.step) for v in light) for light in steered.predicted_under] == lights
         assert found.offset == pytest.approx((4 * steered.step, 0.0), abs=1e-5)
+
+
+@pytest.mark.parametrize("normal_unit", [False, True])
+def test_the_search_passes_run_the_normal_unit_only_when_asked_and_the_prediction_always(normal_unit):
+    torch.manual_seed(3)
+    model = DeepBasisNet(preset("tiny", normal_unit_width=4, normal_unit_blocks=(1, 1))).eval()
+    with torch.no_grad():  # a unit that changes the normals, so that its absence shows
+        model.normal_unit.ending.bias.fill_(0.3)
+    calls = []
+    slope = model.normal_slope
+    model.normal_slope = lambda *args, **kwargs: calls.append(1) or slope(*args, **kwargs)
+    capturer = Capturer(model, CaptureConfig(fov=45.0, symmetries=1, network_resolution=0,
+                                             search=SearchConfig(grid=5, resolution=16, passes=2, normal_unit=normal_unit)))
+    photo = Photo(torch.rand(3, 32, 32) * 0.5, 45.0, "argument")
+    found = capturer.search(photo)
+    passes = sum(isinstance(entry["pass"], int) for entry in found.history)
+    assert len(calls) == (passes if normal_unit else 0)
+    # The search's last pass is the network's answer with or without the unit at its light.
+    last_light = torch.tensor(found.history[-2]["offset"])
+    inputs_light = geometry.light_positions(last_light[None], 45.0)
+    reference = predict(model, photo.pixels[None], inputs_light, 45.0, network_resolution=0).maps
+    unit_off = model(encode(photo.pixels[None], inputs_light, model), inputs_light, fov=45.0,
+                     with_normal_unit=False).maps
+    torch.testing.assert_close(found.output.maps, reference if normal_unit else unit_off, atol=1e-6, rtol=0)
+    assert (reference[:, :2] - unit_off[:, :2]).abs().max() > 0.01
+    calls.clear()
+    capturer.predict(photo, found.offset)  # the material itself: always with the unit
+    assert len(calls) == 1
+
+
+def encode(photos, lights, model):
+    from mideepbasis.model.inputs import encode_inputs
+
+    return encode_inputs(photos, lights, 45.0, model.config.convention, model.config.plane_extent,
+                         model.config.extra_inputs)
 
 
 def test_refinement_lowers_the_error_and_moves_only_the_global_bases():

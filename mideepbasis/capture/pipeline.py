@@ -172,15 +172,16 @@ class Prediction:
 
 def predict_small(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
                   fov: float = constants.DEFAULT_FOV_DEG, network_resolution: int | None = None,
-                  symmetries: int = 1) -> Prediction:
+                  symmetries: int = 1, with_normal_unit: bool = True) -> Prediction:
     """``predict``, its output left at the network's resolution (a ``Prediction``). ``symmetries``
-    is 1 here (a single pass, as the search's), not ``CaptureConfig``'s default."""
+    is 1 here (a single pass, as the search's), not ``CaptureConfig``'s default;
+    ``with_normal_unit`` False leaves the normal unit out (``DeepBasisNet.forward``)."""
     limit = network_resolution_limit(model, network_resolution)
     height, width = photos.shape[-2:]
     if limit and max(height, width) > limit:
         scale = limit / max(height, width)
         photos = F.interpolate(photos, size=(max(1, round(height * scale)), max(1, round(width * scale))), mode="area")
-    return Prediction(_network_pass(model, photos, lights, fov, symmetries), (height, width))
+    return Prediction(_network_pass(model, photos, lights, fov, symmetries, with_normal_unit), (height, width))
 
 
 def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
@@ -205,7 +206,7 @@ def predict(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
 
 
 def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor, fov: float,
-                  symmetries: int = 1) -> DeepBasisOutput:
+                  symmetries: int = 1, with_normal_unit: bool = True) -> DeepBasisOutput:
     """One network pass at the photos' own size; a size that is not a multiple of the network's
     stride is padded by reflection and the prediction cropped back (the padding, on the bottom
     and right, then turns with the photo: the symmetries are not exact there). A non-square photo
@@ -220,8 +221,11 @@ def _network_pass(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tenso
         symmetries = 4
     if pad_h or pad_w:
         inputs = F.pad(inputs, (0, pad_w, 0, pad_h), mode="reflect")
-    # A single pass names no symmetries: any model with DeepBasisNet's call serves (tests' oracles).
+    # A single pass names no options unless it leaves out a normal unit the model has: any model
+    # with DeepBasisNet's call serves (tests' oracles).
     options = {"symmetries": symmetries} if symmetries > 1 else {}
+    if not with_normal_unit and hasattr(model, "normal_unit"):
+        options["with_normal_unit"] = False
     with torch.no_grad():
         output = model(inputs.to(device), lights.to(device), fov=fov, **options)
     return output.crop(height, width) if pad_h or pad_w else output
@@ -295,7 +299,8 @@ class Capturer:
         def predictor(photos: torch.Tensor, lights: torch.Tensor) -> Prediction:
             # The search reads the maps alone: ``Prediction.maps`` builds them basis by basis, the
             # upsampled output's to the bit in half its time (25 against 60 ms at 256 px).
-            return predict_small(self.model, photos, lights, photo.fov, self.config.network_resolution)
+            return predict_small(self.model, photos, lights, photo.fov, self.config.network_resolution,
+                                 with_normal_unit=self.config.search.normal_unit)
 
         return search_light(predictor, photo.pixels, photo.fov, self.convention, self.model.config.plane_extent,
                             self.config.search)

@@ -11,6 +11,7 @@ Shapes: photo (3, H, W) linear; offsets (K, 2) [patch half-widths]; maps (1, 10,
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
@@ -71,8 +72,16 @@ class SearchConfig:
     max_offset_deg: float = constants.MAX_OFFSET_DEG
     """Largest hand-held offset searched [deg] (delta)."""
 
+    normal_unit: bool = False
+    """Whether the search's network passes run the normal unit (``DeepBasisNet``'s
+    ``with_normal_unit``). Without it a pass costs less (the bundled photo at 128 px: 65 against
+    111 ms) and the candidates are rendered with the bases' normals alone, which found the flash
+    better on held-out procedural materials (benchmarks/search_prior.py --normal-unit on off, 120
+    searches, the tenth session's weights): mean error 4.84 -> 4.37 deg, 2.74 -> 2.59 passes. On the
+    shared test set (``evaluate --lighting``) it was 0.06 deg worse: 3.03 -> 3.09 deg."""
 
-@dataclass(frozen=True)
+
+@dataclass(frozen=True, eq=False)
 class SearchResult:
     """What the search found."""
 
@@ -82,8 +91,14 @@ class SearchResult:
     history: list[dict]
     """The passes: offset [patch half-widths] and objective (mean L1) each."""
 
-    output: Predicted
-    """The last pass's prediction (its maps at the search's network resolution)."""
+    last_pass: Callable[[], Predicted] = field(repr=False)
+    """Gives the last pass's prediction (``output``)."""
+
+    @functools.cached_property
+    def output(self) -> Predicted:
+        """The last pass's prediction (its maps at the search's network resolution). A search that
+        went round a cycle predicts it again only when this is read: ``capture`` does not read it."""
+        return self.last_pass()
 
 
 def candidate_offsets(fov: float, max_offset_deg: float, grid: int, centre=(0.0, 0.0), span: float | None = None) -> torch.Tensor:
@@ -145,8 +160,9 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
             period = len(passes) - seen
             last = seen + (config.passes - 1 - seen) % period
             light, small_maps = passes[last]
-            if last != len(passes) - 1:  # its prediction again, rather than every pass's held (60 MB at 256 px)
-                output = predict(photo[None], geometry.light_positions(light[None], fov))
+            if last != len(passes) - 1:  # its prediction again if asked for, rather than every pass's held (60 MB at 256 px)
+                output = None
+                last_light = geometry.light_positions(light[None], fov)
             current = passes[seen + (last + 1 - seen) % period][0]
             break
         # Toward the best candidate (relaxation 1: to it), snapped to the grid.
@@ -157,4 +173,10 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
     errors = objective(small_maps, fine)
     current = fine[int(torch.argmin(errors))]
     history.append({"pass": "fine", "offset": current.tolist(), "objective": float(errors.min())})
-    return SearchResult(offset=(float(current[0]), float(current[1])), history=history, output=output)
+    if output is None:
+        def last_pass() -> Predicted:
+            return predict(photo[None], last_light)
+    else:
+        def last_pass() -> Predicted:
+            return output
+    return SearchResult(offset=(float(current[0]), float(current[1])), history=history, last_pass=last_pass)
