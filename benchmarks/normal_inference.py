@@ -1,6 +1,9 @@
 """Ways to run a trained normal unit at inference, on held-out procedural materials and the shared 84.
 
     .venv/bin/python benchmarks/normal_inference.py [--model CKPT] [--procedural 48] [--gains 1 1.2 1.4 1.7]
+    .venv/bin/python benchmarks/normal_inference.py --procedural 96 --run-config runs/normal_booster/config.json \
+        --gains 1 1.2 --symmetries --symmetric-gains --octaves 0,0 0.25,0 0.5,0 0.75,0 1,0 0,0.25 0.25,0.25 \
+        0.5,0.25 0.75,0.25 0.5,0.5 -o benchmarks/results/normal_octaves.json
 
 Two questions, each answered first on procedural materials (held-out seeds 3e9 + 900 on, the
 generator of ``--run-config``, 256 px, seeded hand-held offsets) and then on the shared test set
@@ -13,6 +16,11 @@ resolution). Only measured, never trained on. Normal RMSE in the stored encoding
 - **Resolution**: the unit run on the photo at its own 256 px (its slope added to the upsampled
   deviations) instead of at the network's 128 px (its slope upsampled with them), and the mean of
   the two slopes.
+- **Octaves** (``--octaves A,B``): the slope at the network's 128 px plus A times the unit's
+  slope on the photo area-averaged to 64 px and B times that at 32 px, each upsampled
+  (``NetworkConfig.normal_unit_octaves`` (1, A, B)).
+
+Every variant runs the unit as it says, whatever octaves the model's configuration names.
 
 Writes benchmarks/results/normal_inference.json.
 """
@@ -24,6 +32,7 @@ from pathlib import Path
 
 import mideepbasis  # noqa: F401
 import torch
+import torch.nn.functional as F
 from common import RESULTS, SHARED_TEST, run_generator_settings, write_report
 from normal_bands import flat_normals, stored_rmse
 
@@ -41,8 +50,9 @@ from mideepbasis.model.symmetry import symmetrised_field
 def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float, variants: dict) -> dict:
     """The predicted unit normals (1, 3, H, W) of a photo (1, 3, H, W) at the photo's size for each
     variant (gain, where, symmetries): the unit's raw output times the gain, its slope from the
-    network's resolution (``network``), the photo's (``photo``) or their mean (``mean``), averaged
-    over that many symmetries of the square (``model.symmetry``). The rest of the network runs once."""
+    network's resolution (``network``), the photo's (``photo``) or their mean (``mean``), or a
+    tuple of weights by octave from the network's resolution down, averaged over that many
+    symmetries of the square (``model.symmetry``). The rest of the network runs once."""
     config = model.config
     size = photo.shape[-1]
     limit = network_resolution_limit(model)  # as capture runs the network: at its training resolution
@@ -58,9 +68,15 @@ def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float,
         relief = relief_inputs(images, lights, fov, config.convention, config.plane_extent)
         return torch.tanh(gain * model.normal_raw(relief))
 
-    def slope(gain: float, where: str, symmetries: int) -> torch.Tensor:
+    def slope(gain: float, where, symmetries: int) -> torch.Tensor:
         if where == "mean":
             return 0.5 * (slope(gain, "network", symmetries) + slope(gain, "photo", symmetries))
+        if isinstance(where, tuple):  # octaves of the network's resolution
+            network = images["network"]
+            return sum(weight * upsample_bilinear(symmetrised_field(lambda image, lights: unit_slope(image, lights, gain),
+                                                                    F.avg_pool2d(network, 2**octave), light, symmetries),
+                                                  size, size)
+                       for octave, weight in enumerate(where) if weight)
         field = symmetrised_field(lambda image, lights: unit_slope(image, lights, gain), images[where], light,
                                   symmetries)
         return upsample_bilinear(field, size, size)
@@ -99,6 +115,8 @@ def main() -> None:
                         help="the unit's slope averaged over this many symmetries of the square (model.symmetry)")
     parser.add_argument("--symmetric-gains", type=float, nargs="*", default=[1.2, 1.4, 1.7],
                         help="gains tried on the slope averaged over all 8 symmetries")
+    parser.add_argument("--octaves", nargs="*", default=[],
+                        help="A,B: the slope at 128 px plus A x the slope at 64 px plus B x the slope at 32 px")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "normal_inference.json")
     args = parser.parse_args()
     if not SHARED_TEST.is_dir():
@@ -110,6 +128,9 @@ def main() -> None:
     variants.update({"unit at 256 px": (1.0, "photo", 1), "mean of 128 and 256 px": (1.0, "mean", 1)})
     variants.update({f"mean over {count} symmetries": (1.0, "network", count) for count in args.symmetries})
     variants.update({f"gain {gain:g}, mean over 8 symmetries": (gain, "network", 8) for gain in args.symmetric_gains})
+    for text in args.octaves:
+        coarse = tuple(float(v) for v in text.split(","))
+        variants[f"octaves 1, {', '.join(f'{v:g}' for v in coarse)}"] = (1.0, (1.0, *coarse), 1)
 
     settings = run_generator_settings(args.run_config) if args.run_config.is_file() else {}
     generator = GeneratorConfig(**{**settings, "size": 256})

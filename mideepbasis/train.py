@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
@@ -252,6 +253,11 @@ class TrainConfig:
                 raise ValueError("train_only names normal_booster: it needs network.normal_booster_width")
             if self.normal_crop > self.size or self.normal_crop % 16:
                 raise ValueError(f"normal_crop {self.normal_crop} must be a multiple of 16 and at most size {self.size}")
+            coarsest = 2 ** (len(self.network.normal_unit_octaves) - 1)
+            if self.normal_crop % (16 * coarsest) or self.size % coarsest:
+                raise ValueError(f"normal_crop {self.normal_crop} and size {self.size} must be multiples of "
+                                 f"{16 * coarsest} and {coarsest}: the normal unit's coarsest octave sees them "
+                                 f"at 1/{coarsest}")
             if self.normal_pool_refresh > self.normal_pool:
                 raise ValueError("normal_pool_refresh cannot exceed normal_pool")
         if self.local_pool < 0:
@@ -421,39 +427,54 @@ class NormalUnitPool(PhotographedPool):
     """The training data of the normal unit alone (``TrainConfig.normal_pool``): the relief inputs
     and true normals of a pool of photographed training materials (``PhotographedPool``). A
     unit that reads the albedo shading (``NetworkConfig.normal_unit_albedo``) gets the diffuse
-    that ``diffuse_of`` (network inputs, lights) predicts: the frozen rest of the network's.
+    that ``diffuse_of`` (network inputs, lights) predicts: the frozen rest of the network's. A
+    unit of several octaves (``NetworkConfig.normal_unit_octaves``) gets the relief inputs of
+    the photo area-averaged to each (``coarse_relief``), as ``DeepBasisNet.normal_slope`` makes them.
     """
 
     def __init__(self, materials: Dataset, config: TrainConfig, step: int, diffuse_of=None):
         if config.network.normal_unit_albedo and diffuse_of is None:
             raise ValueError("a unit that reads the albedo shading needs the network's diffuse (diffuse_of)")
         self.diffuse_of = diffuse_of
-        size = config.size
-        self.relief = torch.empty(config.normal_pool, relief_channels(config.network.normal_unit_albedo), size, size)
+        size, channels = config.size, relief_channels(config.network.normal_unit_albedo)
+        self.relief = torch.empty(config.normal_pool, channels, size, size)
+        #: The relief inputs at octaves 1, 2, ...: (pool, channels, size / 2^k, size / 2^k) each.
+        self.coarse_relief = [torch.empty(config.normal_pool, channels, size >> k, size >> k)
+                              for k in range(1, len(config.network.normal_unit_octaves))]
         self.normals = torch.empty(config.normal_pool, 3, size, size)
         super().__init__(materials, config, step, config.normal_pool, config.normal_pool_refresh)
 
     def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
         config = self.config
         diffuse = self.diffuse_of(batch.inputs, batch.lights) if config.network.normal_unit_albedo else None
-        self.relief[slot] = relief_inputs(decode_photo(batch.inputs), batch.lights, config.synthesis.fov,
-                                          config.network.convention, config.network.plane_extent,
-                                          diffuse=diffuse)[0]
+        photo = decode_photo(batch.inputs)
+        for octave, stored in enumerate([self.relief, *self.coarse_relief]):
+            scale = 2**octave
+            stored[slot] = relief_inputs(F.avg_pool2d(photo, scale) if octave else photo, batch.lights,
+                                         config.synthesis.fov, config.network.convention, config.network.plane_extent,
+                                         diffuse=F.avg_pool2d(diffuse, scale) if octave and diffuse is not None
+                                         else diffuse)[0]
         self.normals[slot] = batch.maps[0, constants.NORMAL]  # as photographed (``supersample``: downsampled)
 
-    def batch(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """A batch of random crops, each mirrored and turned at random: (relief inputs
-        (B, relief channels, C, C), true normals (B, 3, C, C))."""
+    def batch(self, generator: torch.Generator) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """A batch of random crops, each mirrored and turned at random: (the relief inputs at each
+        octave, (B, relief channels, C / 2^k, C / 2^k) the k-th; true normals (B, 3, C, C)). With
+        several octaves the corners fall on multiples of the coarsest octave's pixel."""
         config, crop = self.config, self.config.normal_crop
         slots = torch.randint(0, config.normal_pool, (config.batch,), generator=generator).tolist()
-        corners = torch.randint(0, config.size - crop + 1, (config.batch, 2), generator=generator).tolist()
+        step = 2**len(self.coarse_relief)
+        corners = (torch.randint(0, (config.size - crop) // step + 1, (config.batch, 2), generator=generator)
+                   * step).tolist()
         moves = torch.randint(0, 8, (config.batch,), generator=generator).tolist()
-        relief, normals = [], []
+        reliefs, normals = [[] for _ in range(1 + len(self.coarse_relief))], []
         for slot, (top, left), move in zip(slots, corners, moves):
+            for octave, stored in enumerate([self.relief, *self.coarse_relief]):
+                window = (slot, slice(None), slice(top >> octave, (top + crop) >> octave),
+                          slice(left >> octave, (left + crop) >> octave))
+                reliefs[octave].append(dihedral(stored[window], RELIEF_DIRECTION_CHANNEL, move >= 4, move % 4))
             window = (slot, slice(None), slice(top, top + crop), slice(left, left + crop))
-            relief.append(dihedral(self.relief[window], RELIEF_DIRECTION_CHANNEL, move >= 4, move % 4))
             normals.append(dihedral(self.normals[window], 0, move >= 4, move % 4))
-        return torch.stack(relief), torch.stack(normals)
+        return [torch.stack(relief) for relief in reliefs], torch.stack(normals)
 
 
 @dataclass
@@ -547,10 +568,9 @@ def highlight_weights(maps: torch.Tensor, lights: torch.Tensor, weight: float, f
     return weights / weights.mean(dim=(2, 3), keepdim=True)
 
 
-def normals_over_flat(raw_slope: torch.Tensor) -> torch.Tensor:
-    """The normals (B, 3, H, W) that the normal unit's output (B, 2, H, W), before its tanh, gives
-    a flat material: unit-normal(tanh(slope), 1), as ``DeepBasisNet`` adds it to the bases."""
-    slope = torch.tanh(raw_slope)
+def normals_over_flat(slope: torch.Tensor) -> torch.Tensor:
+    """The normals (B, 3, H, W) that the normal unit's slope (B, 2, H, W) gives a flat material:
+    unit-normal(slope, 1), as ``DeepBasisNet`` adds it to the bases."""
     return torch.nn.functional.normalize(torch.cat([slope, torch.ones_like(slope[:, :1])], dim=1), dim=1)
 
 
@@ -816,7 +836,8 @@ class Trainer:
         everything else is loaded), except that a normal unit of the same width and levels with more
         blocks keeps the checkpoint's blocks, the added ones starting as the identity, and that a
         second normal unit (``normal_booster_width``) the checkpoint lacks starts at zero: the
-        network computes what the checkpoint's did. A run without one drops the checkpoint's."""
+        network computes what the checkpoint's did. A run without one drops the checkpoint's. The
+        normal unit's octaves (``normal_unit_octaves``) may differ too: they need no weights."""
         from dataclasses import replace
 
         from .model.checkpoint import load_model
@@ -827,7 +848,8 @@ class Trainer:
         if replace(source.config, extra_inputs=config.extra_inputs, normal_unit_width=config.normal_unit_width,
                    normal_booster_width=config.normal_booster_width,
                    normal_unit_blocks=config.normal_unit_blocks, normal_unit_albedo=config.normal_unit_albedo,
-                   normal_unit_middle_blocks=config.normal_unit_middle_blocks, **local_fields) != config:
+                   normal_unit_middle_blocks=config.normal_unit_middle_blocks,
+                   normal_unit_octaves=config.normal_unit_octaves, **local_fields) != config:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
                              "preset) in more than the optional inputs and the sizes of the local and normal units")
         state, target = source.state_dict(), self.model.state_dict()
@@ -974,11 +996,11 @@ class Trainer:
 
     def _normal_unit_step(self, crops: tuple[torch.Tensor, torch.Tensor]) -> dict:
         """One step of the normal unit alone (``TrainConfig.normal_pool``) on crops of the pool."""
-        relief, truth = (tensor.to(self.device) for tensor in crops)
+        reliefs, truth = [tensor.to(self.device) for tensor in crops[0]], crops[1].to(self.device)
         model = getattr(self.model, "module", self.model)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
-            raw = model.normal_raw(relief)
-        loss = normal_unit_loss(normals_over_flat(raw.float()), truth, self.config.normal_pool_loss)
+            slope = model.octave_slope(reliefs)
+        loss = normal_unit_loss(normals_over_flat(slope.float()), truth, self.config.normal_pool_loss)
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": loss.item(), "l_vc": 0.0, "l_saturation": 0.0, "grad_norm": norm.item()}
 

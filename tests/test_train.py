@@ -435,7 +435,7 @@ def test_the_normal_pool_at_a_step_is_the_same_reached_or_rebuilt(tmp_path):
     assert torch.equal(advanced.relief, rebuilt.relief) and torch.equal(advanced.normals, rebuilt.normals)
     # Four steps of two new materials each replaced every material of the pool of three.
     assert not any(torch.equal(first[i], rebuilt.normals[j]) for i in range(3) for j in range(3))
-    relief, normals = rebuilt.batch(torch.Generator().manual_seed(0))
+    (relief,), normals = rebuilt.batch(torch.Generator().manual_seed(0))
     assert relief.shape == (2, 7, 16, 16) and normals.shape == (2, 3, 16, 16)
     # Each crop's relief inputs and normals come from the same material, window and move.
     for crop_relief, crop_normals in zip(relief, normals):
@@ -506,7 +506,7 @@ def test_a_unit_given_the_albedo_shading_starts_as_the_checkpoint_and_learns_fro
         torch.testing.assert_close(model(inputs, lights).maps, source_net(inputs, lights).maps, rtol=1e-5, atol=1e-6)
     # The pool's eighth channel is the albedo shading of the frozen network's own diffuse.
     pool = next(trainer.pool_batches())
-    assert pool[0].shape == (2, 8, 16, 16)
+    assert pool[0][0].shape == (2, 8, 16, 16)
     before = {name: value.clone() for name, value in trainer.model.state_dict().items()}
     trainer.run()
     changed = {name for name, value in trainer.model.state_dict().items() if not torch.equal(before[name], value)}
@@ -740,6 +740,50 @@ def test_the_local_pool_stores_the_highlight_weights_of_its_materials(tmp_path):
         tiny_config(tmp_path, highlight_weight=2.0)
     with pytest.raises(ValueError, match="positive with local_pool"):
         local_pool_config(tmp_path, highlight_weight=-1.0)
+
+
+def test_a_normal_pool_of_two_octaves_holds_the_photo_area_averaged_and_crops_both_alike(tmp_path):
+    import torch.nn.functional as F
+
+    from mideepbasis.model.inputs import decode_photo, relief_inputs
+    from mideepbasis.train import NormalUnitPool, TrainingMaterials
+
+    config = pool_config(tmp_path, network={"normal_unit_width": 4, "normal_unit_blocks": (1, 1, 1), "normal_unit_octaves": (1.0, 0.5)},
+                         normal_crop=32, size=64)
+    materials = TrainingMaterials(config.data, config.size, config.seed)
+    pool = NormalUnitPool(materials, config, 0)
+    assert pool.relief.shape[-1] == 64 and [r.shape[-1] for r in pool.coarse_relief] == [32]
+    # The coarse relief is that of the photo averaged over 2 x 2 pixels, made as the full one is.
+    from mideepbasis.train import synthesize
+
+    photographed = synthesize(materials[0][None], torch.Generator().manual_seed(config.seed * 1_000_003),
+                              config.synthesis, config.network.extra_inputs)
+    photo = decode_photo(photographed.inputs)
+    expected = relief_inputs(F.avg_pool2d(photo, 2), photographed.lights, config.synthesis.fov,
+                             config.network.convention, config.network.plane_extent)[0]
+    torch.testing.assert_close(pool.coarse_relief[0][0], expected, atol=1e-6, rtol=0)
+    (full, coarse), normals = pool.batch(torch.Generator().manual_seed(1))
+    assert full.shape == (2, 7, 32, 32) and coarse.shape == (2, 7, 16, 16) and normals.shape == (2, 3, 32, 32)
+    for crop_full, crop_coarse in zip(full, coarse):
+        matches = [(slot, top, left) for slot in range(3) for top in range(0, 33, 2) for left in range(0, 33, 2)
+                   if any(torch.equal(dihedral_moves, crop_full) for dihedral_moves in moved(pool.relief[slot, :, top:top + 32, left:left + 32]))]
+        assert matches
+        slot, top, left = matches[0]
+        assert any(torch.equal(m, crop_coarse) for m in moved(pool.coarse_relief[0][slot, :, top // 2:top // 2 + 16,
+                                                                                     left // 2:left // 2 + 16]))
+    trainer = Trainer(dataclasses.replace(config, steps=2), progress=False)
+    trainer.run()
+    assert (tmp_path / "run" / "model.safetensors").is_file()
+    with pytest.raises(ValueError, match="multiples of 32"):
+        pool_config(tmp_path, network={"normal_unit_width": 4, "normal_unit_blocks": (1, 1, 1), "normal_unit_octaves": (1.0, 0.5)}, normal_crop=16)
+
+
+def moved(image):
+    """The 8 mirrored and turned copies of a relief crop, its direction channels moved with it."""
+    from mideepbasis.model.inputs import RELIEF_DIRECTION_CHANNEL
+    from mideepbasis.model.symmetry import dihedral
+
+    return [dihedral(image, RELIEF_DIRECTION_CHANNEL, move >= 4, move % 4) for move in range(8)]
 
 
 def test_a_supersampled_run_makes_its_materials_larger_and_learns_from_them_downsampled(tmp_path):

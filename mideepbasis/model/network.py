@@ -112,6 +112,13 @@ class NetworkConfig:
     colour from relief with its own few features. The diffuse is blended from the bases and local
     deviations first (the unit changes only the normal), without a gradient through it."""
 
+    normal_unit_octaves: tuple[float, ...] = (1.0,)
+    """Weights of the normal unit's slope by octave: the unit also runs on the photo area-averaged
+    to 1/2, 1/4, ... of the network's resolution (one entry each after the first), and the slopes,
+    upsampled back (bilinear), are summed with these weights. At half the resolution the unit's
+    receptive field covers twice the sample, so it sees broad relief that the full-resolution
+    pass misses. (1.0,): the full resolution alone."""
+
     normal_booster_width: int = 0
     """Channels of the first level of a second normal unit beside the first (0: none): the same
     levels, blocks and inputs, its raw slope added to the first's before their tanh, its last
@@ -130,6 +137,12 @@ class NetworkConfig:
         if self.normal_unit_width and len(self.normal_unit_blocks) > len(self.encoder_channels):
             raise ValueError(f"the normal unit's {len(self.normal_unit_blocks)} levels need inputs in multiples "
                              f"of 2^{len(self.normal_unit_blocks)}: at most the encoder's {len(self.encoder_channels)}")
+        if not any(self.normal_unit_octaves):
+            raise ValueError("normal_unit_octaves needs a weight other than 0")
+        if self.normal_unit_width and len(self.normal_unit_blocks) + len(self.normal_unit_octaves) - 1 > len(self.encoder_channels):
+            raise ValueError(f"the normal unit's {len(self.normal_unit_octaves)} octaves of {len(self.normal_unit_blocks)} "
+                             f"levels each need inputs in multiples of 2^{len(self.normal_unit_blocks) + len(self.normal_unit_octaves) - 1}: "
+                             f"more than the encoder's 2^{len(self.encoder_channels)}")
 
     @property
     def input_channels(self) -> int:
@@ -691,17 +704,37 @@ class DeepBasisNet(nn.Module):
     def normal_slope(self, stage: BasisStage, deviations: torch.Tensor, lights: torch.Tensor,
                      fov: float = constants.DEFAULT_FOV_DEG) -> torch.Tensor:
         """The normal unit's slope, (B, 2, H, W): the x and y it adds to every basis's normal
-        (``slope_change``)."""
+        (``slope_change``), summed over its octaves (``NetworkConfig.normal_unit_octaves``)."""
         config = self.config
-        batch = stage.photo.shape[0]
+        batch, _, height, width = stage.photo.shape
         diffuse = None
         if config.normal_unit_albedo:  # the unit leaves the diffuse as it is: blend it first
             with torch.no_grad():
                 diffuse = DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations,
                                                      keep_bases=False).maps[:, constants.DIFFUSE].float()
-        relief = relief_inputs(stage.photo.float(), lights.view(batch, 3).float(), fov, config.convention,
-                               config.plane_extent, diffuse=diffuse).to(stage.local_inputs.dtype)
-        return torch.tanh(self.normal_raw(relief))
+        photo, lights = stage.photo.float(), lights.view(batch, 3).float()
+        reliefs = []
+        for octave in range(len(config.normal_unit_octaves)):
+            scale = 2**octave
+            relief = relief_inputs(F.avg_pool2d(photo, scale) if octave else photo, lights, fov, config.convention,
+                                   config.plane_extent,
+                                   diffuse=F.avg_pool2d(diffuse, scale) if octave and diffuse is not None else diffuse)
+            reliefs.append(relief.to(stage.local_inputs.dtype))
+        return self.octave_slope(reliefs)
+
+    def octave_slope(self, reliefs: list[torch.Tensor]) -> torch.Tensor:
+        """The normal unit's slope (B, 2, H, W) from its relief inputs at each octave
+        (``NetworkConfig.normal_unit_octaves``; the k-th (B, C, H / 2^k, W / 2^k)): each octave's
+        slope, upsampled to the first's size, times its weight, summed."""
+        height, width = reliefs[0].shape[-2:]
+        total = None
+        for octave, (relief, weight) in enumerate(zip(reliefs, self.config.normal_unit_octaves, strict=True)):
+            if weight == 0:
+                continue
+            slope = torch.tanh(self.normal_raw(relief))
+            slope = weight * (upsample_bilinear(slope, height, width) if octave else slope)
+            total = slope if total is None else total + slope
+        return total
 
     def normal_raw(self, relief: torch.Tensor) -> torch.Tensor:
         """The normal units' slope before its tanh, (B, 2, H, W), from their relief inputs: the

@@ -139,6 +139,44 @@ def test_the_normal_unit_adds_its_slope_to_the_normal_deviation_of_every_basis()
         preset("tiny", normal_unit_width=4, use_local=False)
 
 
+def test_a_normal_unit_of_two_octaves_adds_its_slope_on_the_photo_averaged_to_half_the_size():
+    import torch.nn.functional as F
+
+    from mideepbasis.model.inputs import relief_inputs
+
+    torch.manual_seed(1)
+    one = DeepBasisNet(preset("tiny", normal_unit_width=4, normal_unit_blocks=(1, 1, 1))).eval()
+    two = DeepBasisNet(preset("tiny", normal_unit_width=4, normal_unit_blocks=(1, 1, 1),
+                              normal_unit_octaves=(1.0, 0.5))).eval()
+    for parameter in one.normal_unit.parameters():
+        parameter.data.normal_(0.0, 0.3)
+    two.load_state_dict(one.state_dict())  # the octaves need no weights of their own
+    inputs = torch.rand(2, 9, 32, 32) * 2 - 1
+    lights = torch.tensor([[0.1, 0.0, 2.4], [0.0, -0.2, 2.4]])
+    photo = inputs[:, :3] * 0.5 + 0.5
+    with torch.no_grad():
+        a, b = one(inputs, lights), two(inputs, lights)
+        coarse = torch.tanh(one.normal_unit(relief_inputs(F.avg_pool2d(photo, 2), lights)))
+    # Written out: the half-size slope upsampled with half-pixel centres (pixel 2i + 1/2 of the full
+    # size lies a quarter of the way from coarse pixel i to i + 1), clamped at the edges.
+    index = (torch.arange(32) + 0.5) / 2 - 0.5
+    low = index.floor().clamp(0, 15).long()
+    high = (low + 1).clamp(max=15)
+    fraction = (index - index.floor()).clamp(0, 1)
+    fraction = torch.where(index < 0, torch.zeros_like(fraction), fraction)
+    rows = coarse[:, :, low] * (1 - fraction)[:, None] + coarse[:, :, high] * fraction[:, None]
+    upsampled = rows[..., low] * (1 - fraction) + rows[..., high] * fraction
+    added = b.deviations - a.deviations
+    assert 0.5 * upsampled.abs().max() > 0.05
+    torch.testing.assert_close(added[:, :, :2], 0.5 * upsampled[:, None].expand(-1, added.shape[1], -1, -1, -1),
+                               atol=1e-5, rtol=0)
+    assert torch.equal(added[:, :, 2:], torch.zeros_like(added[:, :, 2:]))
+    with pytest.raises(ValueError, match="octaves"):
+        preset("tiny", normal_unit_width=4, normal_unit_octaves=(1.0, 0.5))  # 4 levels + 1 octave > the encoder's 4
+    with pytest.raises(ValueError, match="other than 0"):
+        preset("tiny", normal_unit_width=4, normal_unit_octaves=(0.0,))
+
+
 @pytest.mark.parametrize("size", [(128, 100), (128, 128), (120, 96), (48, 40)])
 def test_maps_built_in_bands_are_the_upsampled_outputs(monkeypatch, size):
     """Bands of 24 rows (not a multiple of the 8x upsampling) against the whole upsampled output;
