@@ -35,6 +35,10 @@ if ! .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
     echo "setup: pip could not install the package (see above)" >&2; exit 1
 fi
 rm -f "$log"
+# pip compiles the dependencies' modules; an editable install leaves the package's own to each
+# import, which compiles them again every run where bytecode is not written
+# (PYTHONDONTWRITEBYTECODE): 0.35 s of every command here.
+.venv/bin/python -m compileall -q mideepbasis >/dev/null
 .venv/bin/python -c "import mideepbasis.render" \
     || { echo "setup: the package does not import; see the error above" >&2; exit 1; }
 echo "setup: ready (.venv)"
