@@ -706,7 +706,7 @@ class DeepBasisNet(nn.Module):
         """The normal unit's slope, (B, 2, H, W): the x and y it adds to every basis's normal
         (``slope_change``), summed over its octaves (``NetworkConfig.normal_unit_octaves``)."""
         config = self.config
-        batch, _, height, width = stage.photo.shape
+        batch = stage.photo.shape[0]
         diffuse = None
         if config.normal_unit_albedo:  # the unit leaves the diffuse as it is: blend it first
             with torch.no_grad():
@@ -714,7 +714,10 @@ class DeepBasisNet(nn.Module):
                                                      keep_bases=False).maps[:, constants.DIFFUSE].float()
         photo, lights = stage.photo.float(), lights.view(batch, 3).float()
         reliefs = []
-        for octave in range(len(config.normal_unit_octaves)):
+        for octave, weight in enumerate(config.normal_unit_octaves):
+            if weight == 0:
+                reliefs.append(None)
+                continue
             scale = 2**octave
             relief = relief_inputs(F.avg_pool2d(photo, scale) if octave else photo, lights, fov, config.convention,
                                    config.plane_extent,
@@ -724,9 +727,11 @@ class DeepBasisNet(nn.Module):
 
     def octave_slope(self, reliefs: list[torch.Tensor]) -> torch.Tensor:
         """The normal unit's slope (B, 2, H, W) from its relief inputs at each octave
-        (``NetworkConfig.normal_unit_octaves``; the k-th (B, C, H / 2^k, W / 2^k)): each octave's
-        slope, upsampled to the first's size, times its weight, summed."""
-        height, width = reliefs[0].shape[-2:]
+        (``NetworkConfig.normal_unit_octaves``; the k-th (B, C, H / 2^k, W / 2^k), or None where
+        its weight is 0): each octave's slope, upsampled to the full size (H, W), times its
+        weight, summed."""
+        octave, first = next((k, relief) for k, relief in enumerate(reliefs) if relief is not None)
+        height, width = (2**octave * n for n in first.shape[-2:])
         total = None
         for octave, (relief, weight) in enumerate(zip(reliefs, self.config.normal_unit_octaves, strict=True)):
             if weight == 0:
