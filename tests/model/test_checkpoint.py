@@ -126,3 +126,30 @@ def test_other_safetensors_files_are_refused(tmp_path):
         load_model(plain)
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         load_model(tmp_path / "absent.safetensors")
+
+
+def test_shipping_a_checkpoint_keeps_its_weights_halves_the_parts_named_and_may_set_the_octaves(tmp_path, monkeypatch):
+    import runpy
+    import sys
+    from pathlib import Path
+
+    from mideepbasis.model.checkpoint import WEIGHTS_PREFIX, load_model, read_checkpoint, save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(4)
+    network = DeepBasisNet(preset("tiny", normal_unit_width=4, normal_unit_blocks=(1, 1, 1)))
+    source = save_checkpoint(tmp_path / "run.safetensors", network, metadata={"training": {"steps": 7}})
+    shipped = tmp_path / "shipped.safetensors"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
+    monkeypatch.setattr(sys, "argv", [str(script), str(source), "--half", "normal_unit",
+                                      "--normal-unit-octaves", "1", "0.5", "-o", str(shipped)])
+    runpy.run_path(str(script), run_name="__main__")
+    model = load_model(shipped)
+    assert model.config.normal_unit_octaves == (1.0, 0.5)
+    document, tensors = read_checkpoint(shipped)
+    assert document["training"]["steps"] == 7 and document["training"]["float16_parts"] == ["normal_unit"]
+    assert document["training"]["shipped_from"] == str(source)
+    for name, value in network.state_dict().items():
+        halved = name.startswith("normal_unit.")
+        assert tensors[WEIGHTS_PREFIX + name].dtype == (torch.float16 if halved else value.dtype), name
+        torch.testing.assert_close(model.state_dict()[name], value.half().float() if halved else value, atol=0, rtol=0)
