@@ -4,6 +4,9 @@
     .venv/bin/python benchmarks/normal_inference.py --procedural 96 --run-config runs/normal_booster/config.json \
         --gains 1 1.2 --symmetries --symmetric-gains --octaves 0,0 0.25,0 0.5,0 0.75,0 1,0 0,0.25 0.25,0.25 \
         0.5,0.25 0.75,0.25 0.5,0.5 -o benchmarks/results/normal_octaves.json
+    .venv/bin/python benchmarks/normal_inference.py --procedural 96 --run-config runs/normal_booster/config.json \
+        --scaled --gains 1 --symmetries --symmetric-gains --octaves 0.25,0 0.5,0 0.75,0 0,0.25 0.25,0.25 \
+        -o benchmarks/results/normal_scaled.json
 
 Two questions, each answered first on procedural materials (held-out seeds 3e9 + 900 on, the
 generator of ``--run-config``, 256 px, seeded hand-held offsets) and then on the shared test set
@@ -21,6 +24,8 @@ resolution). Only measured, never trained on. Normal RMSE in the stored encoding
   (``NetworkConfig.normal_unit_octaves`` (1, A, B)).
 
 Every variant runs the unit as it says, whatever octaves the model's configuration names.
+``--scaled`` adds the slope to each basis's normal made unit (``NetworkConfig.normal_slope_scaled``)
+in every variant, instead of to the sum as it is.
 
 Writes benchmarks/results/normal_inference.json.
 """
@@ -43,11 +48,12 @@ from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.evaluation.protocol import evaluation_offsets, flash_photos, load_evaluation_materials
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.model.inputs import encode_inputs, relief_inputs
-from mideepbasis.model.network import DeepBasisOutput, slope_change, upsample_bilinear
+from mideepbasis.model.network import DeepBasisOutput, add_slope, upsample_bilinear
 from mideepbasis.model.symmetry import symmetrised_field
 
 
-def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float, variants: dict) -> dict:
+def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float, variants: dict,
+                    scaled: bool = False) -> dict:
     """The predicted unit normals (1, 3, H, W) of a photo (1, 3, H, W) at the photo's size for each
     variant (gain, where, symmetries): the unit's raw output times the gain, its slope from the
     network's resolution (``network``), the photo's (``photo``) or their mean (``mean``), or a
@@ -84,20 +90,20 @@ def variant_normals(model, photo: torch.Tensor, light: torch.Tensor, fov: float,
     normals = {}
     for name, (gain, where, symmetries) in variants.items():
         output = DeepBasisOutput.from_bases(weights, stage.global_bases,
-                                            upsampled + slope_change(slope(gain, where, symmetries))[:, None],
-                                            keep_bases=False)
+                                            add_slope(stage.global_bases, upsampled, slope(gain, where, symmetries),
+                                                      scaled), keep_bases=False)
         normals[name] = output.maps[:, constants.NORMAL]
     return normals
 
 
-def score(model, maps: torch.Tensor, offsets: torch.Tensor, fov: float, variants: dict) -> dict:
+def score(model, maps: torch.Tensor, offsets: torch.Tensor, fov: float, variants: dict, scaled: bool = False) -> dict:
     truth = maps[:, constants.NORMAL]
     predicted = {name: [] for name in variants}
     with torch.no_grad():
         for index in range(len(maps)):
             photo, light = flash_photos(maps[index:index + 1], offsets[index:index + 1], fov, model.config.convention,
                                         model.config.plane_extent)
-            for name, normals in variant_normals(model, photo, light, fov, variants).items():
+            for name, normals in variant_normals(model, photo, light, fov, variants, scaled).items():
                 predicted[name].append(normals)
     report = {"flat": stored_rmse(flat_normals(truth), truth)}
     report.update({name: stored_rmse(torch.cat(values), truth) for name, values in predicted.items()})
@@ -117,6 +123,8 @@ def main() -> None:
                         help="gains tried on the slope averaged over all 8 symmetries")
     parser.add_argument("--octaves", nargs="*", default=[],
                         help="A,B: the slope at 128 px plus A x the slope at 64 px plus B x the slope at 32 px")
+    parser.add_argument("--scaled", action="store_true",
+                        help="add the slope to each basis's normal made unit (NetworkConfig.normal_slope_scaled)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "normal_inference.json")
     args = parser.parse_args()
     if not SHARED_TEST.is_dir():
@@ -137,8 +145,9 @@ def main() -> None:
     procedural = torch.stack([generate(3 * 10**9 + 900 + i, config=generator).to_tensor() for i in range(args.procedural)])
     shared = load_evaluation_materials(SHARED_TEST, "deschaintre5").maps
     report = {"model": args.model or "shipped", "run_config": str(args.run_config) if settings else None,
-              "procedural": score(model, procedural, evaluation_offsets(len(procedural), 11, fov), fov, variants),
-              "shared": score(model, shared, evaluation_offsets(len(shared), 0, fov), fov, variants)}
+              "procedural": score(model, procedural, evaluation_offsets(len(procedural), 11, fov), fov, variants, args.scaled),
+              "shared": score(model, shared, evaluation_offsets(len(shared), 0, fov), fov, variants, args.scaled),
+              "scaled": args.scaled}
     for name in ("flat", *variants):
         print(f"{name:>24}: procedural {report['procedural'][name]:.4f}, shared {report['shared'][name]:.4f}")
     write_report(args.output, "normal_inference", report)

@@ -41,7 +41,7 @@ from .data.synth import SynthesisConfig, TrainingBatch, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
 from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, relief_channels, relief_inputs
-from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, preset, slope_change, to_signed
+from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, add_slope, preset, to_signed
 from .model.symmetry import dihedral
 
 
@@ -836,8 +836,9 @@ class Trainer:
         everything else is loaded), except that a normal unit of the same width and levels with more
         blocks keeps the checkpoint's blocks, the added ones starting as the identity, and that a
         second normal unit (``normal_booster_width``) the checkpoint lacks starts at zero: the
-        network computes what the checkpoint's did. A run without one drops the checkpoint's. The
-        normal unit's octaves (``normal_unit_octaves``) may differ too: they need no weights."""
+        network computes what the checkpoint's did. A run without one drops the checkpoint's. How
+        the normal unit runs (``normal_unit_octaves``, ``normal_slope_scaled``) may differ too: it
+        needs no weights."""
         from dataclasses import replace
 
         from .model.checkpoint import load_model
@@ -849,7 +850,8 @@ class Trainer:
                    normal_booster_width=config.normal_booster_width,
                    normal_unit_blocks=config.normal_unit_blocks, normal_unit_albedo=config.normal_unit_albedo,
                    normal_unit_middle_blocks=config.normal_unit_middle_blocks,
-                   normal_unit_octaves=config.normal_unit_octaves, **local_fields) != config:
+                   normal_unit_octaves=config.normal_unit_octaves, normal_slope_scaled=config.normal_slope_scaled,
+                   **local_fields) != config:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
                              "preset) in more than the optional inputs and the sizes of the local and normal units")
         state, target = source.state_dict(), self.model.state_dict()
@@ -1010,10 +1012,12 @@ class Trainer:
         weights, global_bases, maps = (t.to(self.device) for t in (batch.weights, batch.global_bases, batch.maps))
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=config.bf16):
             deviations = model.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
-        change = slope_change(batch.slope.to(self.device))
+        slope = batch.slope.to(self.device)
 
         def blended(local_deviations: torch.Tensor) -> DeepBasisOutput:  # the normal unit's slope added
-            return DeepBasisOutput.from_bases(weights, global_bases, local_deviations + change[:, None], keep_bases=False)
+            return DeepBasisOutput.from_bases(weights, global_bases,
+                                              add_slope(global_bases, local_deviations, slope,
+                                                        model.config.normal_slope_scaled), keep_bases=False)
 
         output = blended(deviations.float())
         signed_target = None

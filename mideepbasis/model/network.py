@@ -119,6 +119,14 @@ class NetworkConfig:
     receptive field covers twice the sample, so it sees broad relief that the full-resolution
     pass misses. (1.0,): the full resolution alone."""
 
+    normal_slope_scaled: bool = False
+    """Add the normal unit's slope to each basis's normal made unit (the slope scaled by the length
+    of global plus deviation before the sum is made unit), so that it tilts every basis as it tilts
+    a flat unit normal: as the normal pool trains the unit (``train.normals_over_flat``). False
+    (checkpoints before 2026-12-01): added to the sum as it is, whose length the shipped local unit
+    makes about 1.7 (its deviations' z saturates at +1), which weakened the unit's relief by as
+    much."""
+
     normal_booster_width: int = 0
     """Channels of the first level of a second normal unit beside the first (0: none): the same
     levels, blocks and inputs, its raw slope added to the first's before their tanh, its last
@@ -567,7 +575,8 @@ class DeepBasisNet(nn.Module):
             return stage
         deviations = self.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
         if with_normal_unit and hasattr(self, "normal_unit"):
-            deviations = deviations + slope_change(self.normal_slope(stage, deviations, lights, fov))[:, None]
+            deviations = add_slope(stage.global_bases, deviations, self.normal_slope(stage, deviations, lights, fov),
+                                   self.config.normal_slope_scaled)
         return DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations, error=stage.error,
                                           extras=stage.extras)
 
@@ -625,7 +634,7 @@ class DeepBasisNet(nn.Module):
         deviations = torch.cat([bases[:, :, constants.NORMAL] - identity_normals[..., None, None],
                                 bases[:, :, constants.REFLECTANCE]], dim=2)
         if "slope" in mean:
-            deviations = deviations + slope_change(mean["slope"])[:, None]
+            deviations = add_slope(global_bases, deviations, mean["slope"], self.config.normal_slope_scaled)
         return DeepBasisOutput.from_bases(mean["weights"], global_bases, deviations, keep_bases=False,
                                           error=mean["error"])
 
@@ -753,6 +762,20 @@ def slope_change(slope: torch.Tensor) -> torch.Tensor:
     normal's x and y, zero elsewhere."""
     batch, _, height, width = slope.shape
     return torch.cat([slope, slope.new_zeros(batch, constants.BASIS_CHANNELS - 2, height, width)], dim=1)
+
+
+def add_slope(global_bases: torch.Tensor, deviations: torch.Tensor, slope: torch.Tensor,
+              scaled: bool = False) -> torch.Tensor:
+    """The deviations (B, N, 10, H, W) with the normal unit's slope (B, 2, H, W) added to every
+    basis's normal x and y (``slope_change``), global bases (B, N, 10) signed space; ``scaled``:
+    the slope times the length of each basis's normal sum, global plus deviation
+    (``NetworkConfig.normal_slope_scaled``), so that unit-normal(sum + slope) is
+    unit-normal(unit sum + slope)."""
+    change = slope_change(slope)[:, None]
+    if scaled:
+        sums = global_bases[:, :, constants.NORMAL, None, None].to(deviations) + deviations[:, :, constants.NORMAL]
+        change = change * torch.linalg.vector_norm(sums, dim=2, keepdim=True)
+    return deviations + change
 
 
 @dataclass

@@ -177,6 +177,36 @@ def test_a_normal_unit_of_two_octaves_adds_its_slope_on_the_photo_averaged_to_ha
         preset("tiny", normal_unit_width=4, normal_unit_octaves=(0.0,))
 
 
+def test_a_scaled_slope_tilts_every_basis_as_it_tilts_a_flat_unit_normal():
+    from mideepbasis.model.network import add_slope, compose_bases, normalize_basis_normals
+
+    torch.manual_seed(2)
+    global_bases = normalize_basis_normals(torch.rand(2, 3, 10) * 2 - 1, dim=2)
+    global_bases[:, :, 2] = global_bases[:, :, 2].abs() + 0.5
+    deviations = (torch.rand(2, 3, 10, 4, 4) * 2 - 1) * 0.5
+    deviations[:, :, 2] += 0.7  # sums longer than 1, as the shipped local unit makes them
+    slope = (torch.rand(2, 2, 4, 4) * 2 - 1) * 0.4
+    weights = torch.zeros(2, 3, 4, 4)
+    weights[:, 1] = 1.0  # one basis shows
+    sums = global_bases[:, 1, :3, None, None] + deviations[:, 1, :3]
+    unit = sums / sums.norm(dim=1, keepdim=True)
+    for scaled in (False, True):
+        _, blended = compose_bases(weights, global_bases, add_slope(global_bases, deviations, slope, scaled))
+        expected = (unit if scaled else sums) + torch.cat([slope, torch.zeros_like(slope[:, :1])], dim=1)
+        torch.testing.assert_close(blended[:, :3], expected / expected.norm(dim=1, keepdim=True), atol=1e-5, rtol=0)
+    # Unscaled, a sum of length 1.7 takes the slope's tilt down by as much; scaled, a flat basis
+    # of any length tilts as unit-normal(slope, 1).
+    flat = torch.zeros(1, 1, 10)
+    flat[0, 0, 2] = 1.0
+    long = torch.zeros(1, 1, 10, 1, 1)
+    long[0, 0, 2] = 0.7
+    tilt = torch.tensor([[[[0.3]], [[0.0]]]])
+    _, plain = compose_bases(torch.ones(1, 1, 1, 1), flat, add_slope(flat, long, tilt, False))
+    _, scaled = compose_bases(torch.ones(1, 1, 1, 1), flat, add_slope(flat, long, tilt, True))
+    assert float(plain[0, 0] / plain[0, 2]) == pytest.approx(0.3 / 1.7, abs=1e-6)
+    assert float(scaled[0, 0] / scaled[0, 2]) == pytest.approx(0.3, abs=1e-6)
+
+
 @pytest.mark.parametrize("size", [(128, 100), (128, 128), (120, 96), (48, 40)])
 def test_maps_built_in_bands_are_the_upsampled_outputs(monkeypatch, size):
     """Bands of 24 rows (not a multiple of the 8x upsampling) against the whole upsampled output;
