@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
@@ -40,7 +39,7 @@ from .data.procedural import GeneratorConfig
 from .data.synth import SynthesisConfig, TrainingBatch, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
-from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, relief_channels, relief_inputs
+from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, octave_relief_inputs, relief_channels
 from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, add_slope, preset, to_signed
 from .model.symmetry import dihedral
 
@@ -447,13 +446,11 @@ class NormalUnitPool(PhotographedPool):
     def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
         config = self.config
         diffuse = self.diffuse_of(batch.inputs, batch.lights) if config.network.normal_unit_albedo else None
-        photo = decode_photo(batch.inputs)
-        for octave, stored in enumerate([self.relief, *self.coarse_relief]):
-            scale = 2**octave
-            stored[slot] = relief_inputs(F.avg_pool2d(photo, scale) if octave else photo, batch.lights,
-                                         config.synthesis.fov, config.network.convention, config.network.plane_extent,
-                                         diffuse=F.avg_pool2d(diffuse, scale) if octave and diffuse is not None
-                                         else diffuse)[0]
+        reliefs = octave_relief_inputs(decode_photo(batch.inputs), batch.lights, 1 + len(self.coarse_relief),
+                                       config.synthesis.fov, config.network.convention, config.network.plane_extent,
+                                       diffuse=diffuse)
+        for stored, relief in zip([self.relief, *self.coarse_relief], reliefs, strict=True):
+            stored[slot] = relief[0]
         self.normals[slot] = batch.maps[0, constants.NORMAL]  # as photographed (``supersample``: downsampled)
 
     def batch(self, generator: torch.Generator) -> tuple[list[torch.Tensor], torch.Tensor]:
@@ -996,7 +993,7 @@ class Trainer:
         self._set_learning_rate()
         return norm
 
-    def _normal_unit_step(self, crops: tuple[torch.Tensor, torch.Tensor]) -> dict:
+    def _normal_unit_step(self, crops: tuple[list[torch.Tensor], torch.Tensor]) -> dict:
         """One step of the normal unit alone (``TrainConfig.normal_pool``) on crops of the pool."""
         reliefs, truth = [tensor.to(self.device) for tensor in crops[0]], crops[1].to(self.device)
         model = getattr(self.model, "module", self.model)

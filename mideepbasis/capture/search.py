@@ -142,6 +142,7 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
 
     step = 2 * geometry.max_offset(fov, config.max_offset_deg) / max(1, config.grid - 1)
     passes = []  # (light, material at the objective's resolution) of each pass; the latest prediction alone
+    last_pass = None  # where a cycle ends the passes on another pass than the latest: its prediction, when asked
     for index in range(config.passes):
         output = predict(photo[None], geometry.light_positions(current[None], fov))
         small_maps = downsample_maps(output.maps.cpu(), config.resolution)
@@ -161,8 +162,7 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
             last = seen + (config.passes - 1 - seen) % period
             light, small_maps = passes[last]
             if last != len(passes) - 1:  # its prediction again if asked for, rather than every pass's held (60 MB at 256 px)
-                output = None
-                last_light = geometry.light_positions(light[None], fov)
+                last_pass = functools.partial(predict, photo[None], geometry.light_positions(light[None], fov))
             current = passes[seen + (last + 1 - seen) % period][0]
             break
         # Toward the best candidate (relaxation 1: to it), snapped to the grid.
@@ -173,10 +173,5 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
     errors = objective(small_maps, fine)
     current = fine[int(torch.argmin(errors))]
     history.append({"pass": "fine", "offset": current.tolist(), "objective": float(errors.min())})
-    if output is None:
-        def last_pass() -> Predicted:
-            return predict(photo[None], last_light)
-    else:
-        def last_pass() -> Predicted:
-            return output
-    return SearchResult(offset=(float(current[0]), float(current[1])), history=history, last_pass=last_pass)
+    return SearchResult(offset=(float(current[0]), float(current[1])), history=history,
+                        last_pass=last_pass or (lambda: output))

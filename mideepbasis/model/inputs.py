@@ -215,6 +215,19 @@ def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = consta
     return torch.cat(channels, dim=1)
 
 
+
+def octave_relief_inputs(photo: torch.Tensor, lights: torch.Tensor, octaves: int,
+                         fov: float = constants.DEFAULT_FOV_DEG, convention: str = constants.DEFAULT_CONVENTION,
+                         extent: float = 1.0, diffuse: torch.Tensor | None = None) -> list[torch.Tensor]:
+    """``relief_inputs`` of the photo (B, 3, H, W) and of the photo area-averaged to 1/2, 1/4, ...
+    of its size, ``octaves`` in all (``NetworkConfig.normal_unit_octaves``); the diffuse, where
+    given, averaged alike. The k-th is (B, relief channels, H / 2^k, W / 2^k)."""
+    def averaged(image: torch.Tensor | None, octave: int) -> torch.Tensor | None:
+        return torch.nn.functional.avg_pool2d(image, 2**octave) if octave and image is not None else image
+
+    return [relief_inputs(averaged(photo, octave), lights, fov, convention, extent, diffuse=averaged(diffuse, octave))
+            for octave in range(octaves)]
+
 def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of (B, C, H, W), edges reflected."""
     radius = max(1, int(3 * sigma))

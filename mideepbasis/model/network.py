@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .. import constants
-from .inputs import EXTRA_INPUTS, ModelInfo, decode_photo, input_channels, relief_channels, relief_inputs
+from .inputs import EXTRA_INPUTS, ModelInfo, decode_photo, input_channels, octave_relief_inputs, relief_channels
 from .nafnet import NAFNet
 
 
@@ -721,26 +721,17 @@ class DeepBasisNet(nn.Module):
             with torch.no_grad():
                 diffuse = DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations,
                                                      keep_bases=False).maps[:, constants.DIFFUSE].float()
-        photo, lights = stage.photo.float(), lights.view(batch, 3).float()
-        reliefs = []
-        for octave, weight in enumerate(config.normal_unit_octaves):
-            if weight == 0:
-                reliefs.append(None)
-                continue
-            scale = 2**octave
-            relief = relief_inputs(F.avg_pool2d(photo, scale) if octave else photo, lights, fov, config.convention,
-                                   config.plane_extent,
-                                   diffuse=F.avg_pool2d(diffuse, scale) if octave and diffuse is not None else diffuse)
-            reliefs.append(relief.to(stage.local_inputs.dtype))
-        return self.octave_slope(reliefs)
+        reliefs = octave_relief_inputs(stage.photo.float(), lights.view(batch, 3).float(),
+                                       len(config.normal_unit_octaves), fov, config.convention, config.plane_extent,
+                                       diffuse=diffuse)
+        return self.octave_slope([relief.to(stage.local_inputs.dtype) for relief in reliefs])
 
     def octave_slope(self, reliefs: list[torch.Tensor]) -> torch.Tensor:
         """The normal unit's slope (B, 2, H, W) from its relief inputs at each octave
-        (``NetworkConfig.normal_unit_octaves``; the k-th (B, C, H / 2^k, W / 2^k), or None where
-        its weight is 0): each octave's slope, upsampled to the full size (H, W), times its
-        weight, summed."""
-        octave, first = next((k, relief) for k, relief in enumerate(reliefs) if relief is not None)
-        height, width = (2**octave * n for n in first.shape[-2:])
+        (``NetworkConfig.normal_unit_octaves``; the k-th (B, C, H / 2^k, W / 2^k),
+        ``octave_relief_inputs``): each octave's slope, upsampled to the first's size, times its
+        weight, summed; the unit does not run where the weight is 0."""
+        height, width = reliefs[0].shape[-2:]
         total = None
         for octave, (relief, weight) in enumerate(zip(reliefs, self.config.normal_unit_octaves, strict=True)):
             if weight == 0:
