@@ -22,10 +22,11 @@ class LayerNorm2d(nn.Module):
         self.eps = eps
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        mean = x.mean(1, keepdim=True)
-        variance = (x - mean).pow(2).mean(1, keepdim=True)
-        y = (x - mean) / torch.sqrt(variance + self.eps)
-        return self.weight.view(1, -1, 1, 1) * y + self.bias.view(1, -1, 1, 1)
+        # One fused kernel over the channels, which are the last dimension of a channels-last
+        # tensor (``NAFNet`` runs in that layout): no copy, where mean, variance and affine map
+        # written out took eight passes over the activations.
+        normalised = F.layer_norm(x.permute(0, 2, 3, 1), (x.shape[1],), self.weight, self.bias, self.eps)
+        return normalised.permute(0, 3, 1, 2)
 
 
 class SimpleGate(nn.Module):
@@ -108,7 +109,10 @@ class NAFNet(nn.Module):
                 without ever building them: P is N x 10 = 100 channels for the local unit.
         """
         height, width = x.shape[-2:]
+        # Channels last: oneDNN's depth-wise and 1x1 convolutions and the layer norms run on it
+        # without reordering (at 128 px the normal unit's pass took 40 - 60 % less time).
         x = F.pad(x, (0, (-width) % self.multiple, 0, (-height) % self.multiple))
+        x = x.contiguous(memory_format=torch.channels_last)
         if planes is None:
             x = self.intro(x)
         else:
@@ -121,7 +125,9 @@ class NAFNet(nn.Module):
         x = self.middle_blks(x)
         for decoder, up, skip in zip(self.decoders, self.ups, reversed(skips)):
             x = decoder(up(x) + skip)
-        return self.ending(x)[..., :height, :width]
+        # Back to the standard layout before the last convolution, on its few input channels
+        # rather than its many output channels (100 for the local unit).
+        return self.ending(x.contiguous())[..., :height, :width].contiguous()
 
     def _intro_with_planes(self, x: torch.Tensor, planes: torch.Tensor, height: int, width: int) -> torch.Tensor:
         batch, varying = x.shape[:2]

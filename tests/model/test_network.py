@@ -6,7 +6,9 @@ import pytest
 import torch
 
 from mideepbasis import geometry
-from mideepbasis.model.nafnet import NAFNet
+import numpy as np
+
+from mideepbasis.model.nafnet import LayerNorm2d, NAFNet
 from mideepbasis.model.network import (DeepBasisNet, blend, count_parameters, normalize_weights, preset, to_maps,
                                        to_signed)
 
@@ -96,6 +98,40 @@ def test_nafnet_constant_planes_equal_the_full_input():
     x, planes = torch.randn(2, 5, 21, 30), torch.randn(2, 12)
     full = torch.cat([x, planes[:, :, None, None].expand(-1, -1, 21, 30)], 1)
     assert torch.allclose(net(full), net(x, planes=planes), atol=1e-5)
+
+
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
+def test_layer_norm_2d_normalises_each_pixel_over_its_channels(layout):
+    torch.manual_seed(0)
+    norm = LayerNorm2d(6, eps=1e-6)
+    with torch.no_grad():
+        norm.weight.copy_(torch.randn(6))
+        norm.bias.copy_(torch.randn(6))
+    x = torch.randn(2, 6, 5, 7) * 3 + 1
+    # Independent reference in float64: standardise the channel vector of every pixel.
+    a = x.double().numpy()
+    mean = a.mean(axis=1, keepdims=True)
+    std = np.sqrt(((a - mean) ** 2).mean(axis=1, keepdims=True) + 1e-6)
+    expected = norm.weight.detach().double().numpy()[None, :, None, None] * (a - mean) / std \
+        + norm.bias.detach().double().numpy()[None, :, None, None]
+    out = norm(x.contiguous(memory_format=layout))
+    assert out.shape == x.shape
+    np.testing.assert_allclose(out.detach().double().numpy(), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_nafnet_gives_a_contiguous_answer_whatever_the_input_layout():
+    torch.manual_seed(0)
+    net = NAFNet(5, 6, width=4, encoder_blocks=(1, 1), middle_blocks=1, decoder_blocks=(1, 1))
+    for block in net.modules():  # non-zero residual scales, so that every block takes part
+        if hasattr(block, "beta"):
+            torch.nn.init.normal_(block.beta)
+            torch.nn.init.normal_(block.gamma)
+    x = torch.randn(2, 5, 21, 30)
+    out = net(x)
+    assert out.shape == (2, 6, 21, 30) and out.is_contiguous()
+    assert torch.allclose(net(x.contiguous(memory_format=torch.channels_last)), out, atol=1e-5)
+    out.square().mean().backward()  # trains: every parameter gets a gradient
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters())
 
 
 def test_preset_sizes():
