@@ -1,13 +1,15 @@
-"""Noise against time of the path-traced environment preview (the sample on a table) by sampler.
+"""Noise against time of the path-traced previews (the sample on a table, or on a ball and a cloth) by sampler.
 
-    .venv/bin/python benchmarks/preview_noise.py [--reference-spp 2048] [--repeats 3]
+    .venv/bin/python benchmarks/preview_noise.py [--reference-spp 2048] [--repeats 3] [--shapes]
 
 For each material (two procedural ones and the bundled example material, 256 px), renders the
 capture's environment preview (``render.scenes.preview_scene``, studio environment, 256 px) with
 each sampler and sample count below, and reports the render time (the fastest of ``--repeats``,
 the kernels compiled by an untimed render first) and the sRGB RMSE of the clipped image against a
 ``--reference-spp`` render with independent samples and another seed: the preview's noise.
-``results/preview_noise.json``.
+``results/preview_noise.json``. With ``--shapes``, the same for the sphere and cloth previews
+(``render.scenes.shape_scene``, maps repeated twice as a capture shows them) with
+``SHAPE_SETTINGS``: ``results/preview_noise_shapes.json``.
 """
 
 from __future__ import annotations
@@ -25,13 +27,20 @@ from common import RESULTS, write_report  # noqa: E402
 SETTINGS = (("independent", 64), ("independent", 25), ("multijitter", 25), ("multijitter", 36),
             ("orthogonal", 25), ("ldsampler", 16))
 
+#: The same for the shape previews: the capture's before (32 independent) and candidates.
+SHAPE_SETTINGS = (("independent", 32), ("orthogonal", 25), ("multijitter", 16), ("multijitter", 20),
+                  ("multijitter", 25), ("orthogonal", 9))
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reference-spp", type=int, default=2048)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "preview_noise.json")
+    parser.add_argument("--shapes", action="store_true", help="the sphere and cloth previews instead of the plane")
+    parser.add_argument("-o", "--output", type=Path, default=None,
+                        help="default results/preview_noise.json, with --shapes results/preview_noise_shapes.json")
     args = parser.parse_args()
+    output = args.output or RESULTS / ("preview_noise_shapes.json" if args.shapes else "preview_noise.json")
 
     import numpy as np
 
@@ -39,27 +48,36 @@ def main() -> None:
     from mideepbasis.evaluation.environment import to_display
     from mideepbasis.material import Material
     from mideepbasis.render.api import example_material_dir
-    from mideepbasis.render.scenes import preview_scene, render
+    from mideepbasis.render.scenes import preview_scene, render, shape_scene
 
     materials = {"procedural 7": generate(7, config=GeneratorConfig(size=256)).to_tensor(),
                  "procedural 11": generate(11, config=GeneratorConfig(size=256)).to_tensor(),
                  "example material": Material.load(example_material_dir()).to_tensor()}
+    if args.shapes:
+        scenes = {shape: (lambda maps, spp, sampler, shape=shape: shape_scene(maps, shape, spp=spp, sampler=sampler))
+                  for shape in ("sphere", "cloth")}
+        settings = SHAPE_SETTINGS
+    else:
+        scenes = {"plane": lambda maps, spp, sampler: preview_scene(maps, spp=spp, sampler=sampler)}
+        settings = SETTINGS
     rows = []
     for name, maps in materials.items():
-        reference = to_display(render(preview_scene(maps, spp=args.reference_spp), seed=7))
-        for sampler, spp in SETTINGS:
-            scene = preview_scene(maps, spp=spp, sampler=sampler)
-            render(scene)
-            times = []
-            for _ in range(args.repeats):
-                start = time.perf_counter()
-                image = render(scene)
-                times.append(time.perf_counter() - start)
-            rmse = float(np.sqrt(((to_display(image) - reference) ** 2).mean()))
-            rows.append({"material": name, "sampler": sampler, "spp": spp, "seconds": round(min(times), 3),
-                         "srgb_rmse": round(rmse, 5)})
-            print(f"{name:16s} {sampler:12s} {spp:3d} spp: {1000 * min(times):6.0f} ms, sRGB RMSE {rmse:.4f}", flush=True)
-    write_report(args.output, "preview_noise", {"reference_spp": args.reference_spp, "rows": rows})
+        for shape, make_scene in scenes.items():
+            reference = to_display(render(make_scene(maps, args.reference_spp, "independent"), seed=7))
+            for sampler, spp in settings:
+                scene = make_scene(maps, spp, sampler)
+                render(scene)
+                times = []
+                for _ in range(args.repeats):
+                    start = time.perf_counter()
+                    image = render(scene)
+                    times.append(time.perf_counter() - start)
+                rmse = float(np.sqrt(((to_display(image) - reference) ** 2).mean()))
+                rows.append({"material": name, "shape": shape, "sampler": sampler, "spp": spp,
+                             "seconds": round(min(times), 3), "srgb_rmse": round(rmse, 5)})
+                print(f"{name:16s} {shape:6s} {sampler:12s} {spp:3d} spp: {1000 * min(times):6.0f} ms, "
+                      f"sRGB RMSE {rmse:.4f}", flush=True)
+    write_report(output, "preview_noise", {"reference_spp": args.reference_spp, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -222,7 +222,8 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
                  environment: str = "studio", environment_spp: int = constants.CAPTURE_PREVIEW_SPP,
                  environment_sampler: str = constants.CAPTURE_PREVIEW_SAMPLER,
                  progress: bool = False, truth=None, preview_tiles: float = 2.0,
-                 shape_spp: int = constants.SHAPE_PREVIEW_SPP, shape_previews: bool = True) -> Path:
+                 shape_spp: int = constants.SHAPE_PREVIEW_SPP, shape_sampler: str = constants.SHAPE_PREVIEW_SAMPLER,
+                 shape_previews: bool = True) -> Path:
     """Write everything a capture gives (see the module docstring) into ``out``, atomically.
 
     With ``truth`` (a Material the user has maps of), also ``environment_truth.png``: the true
@@ -230,7 +231,7 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     ``environment_difference.png``: |truth - capture| of the two sRGB images, times 4.
     ``preview_sphere.png`` and ``preview_cloth.png`` show the material on a ball and on a draped
     cloth in the same environment, the maps repeated ``preview_tiles`` times across them (unless
-    ``shape_previews`` is False: two path-traced images fewer, about 1.8 s of a capture's 4 on two cores).
+    ``shape_previews`` is False: two path-traced images fewer).
     """
     from .render import render_flash
     from .render.scenes import preview_scene, render, shape_scene
@@ -278,7 +279,8 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
                 images = {"environment": render(scene, progress=progress)}
                 for shape in ("sphere", "cloth") if shape_previews else ():
                     images[f"preview_{shape}"] = render(shape_scene(shown, shape, environment, tiles=preview_tiles,
-                                                                    spp=shape_spp, convention=material.convention))
+                                                                    spp=shape_spp, convention=material.convention,
+                                                                    sampler=shape_sampler))
                 if truth is not None:
                     truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
                                                 spp=environment_spp, convention=material.convention,

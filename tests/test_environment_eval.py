@@ -122,3 +122,19 @@ def test_the_capture_previews_stratified_samples_are_no_noisier_than_64_independ
     noise = {sampler: float(np.sqrt(((display(spp, sampler) - reference) ** 2).mean()))
              for sampler, spp in (("independent", 64), (constants.CAPTURE_PREVIEW_SAMPLER, constants.CAPTURE_PREVIEW_SPP))}
     assert noise[constants.CAPTURE_PREVIEW_SAMPLER] <= 1.05 * noise["independent"], noise
+
+
+def test_the_capture_shape_previews_samples_are_no_noisier_than_32_independent_ones():
+    from mideepbasis import constants
+    from mideepbasis.render.scenes import render, shape_scene
+
+    maps = material(size=64, seed=11)
+    for shape in ("sphere", "cloth"):
+        def display(spp, sampler, seed=0):
+            scene = shape_scene(maps, shape, spp=spp, resolution=64, sampler=sampler)
+            return to_display(render(scene, seed=seed))
+
+        reference = display(1024, "independent", seed=7)
+        noise = {sampler: float(np.sqrt(((display(spp, sampler) - reference) ** 2).mean()))
+                 for sampler, spp in (("independent", 32), (constants.SHAPE_PREVIEW_SAMPLER, constants.SHAPE_PREVIEW_SPP))}
+        assert noise[constants.SHAPE_PREVIEW_SAMPLER] <= 1.05 * noise["independent"], (shape, noise)
