@@ -221,6 +221,7 @@ def _run_demo(args) -> None:
 
     import torch
 
+    from . import geometry
     from .capture import capture
     from .evaluation import light_error_deg, map_rmse
     from .export import check_output, save_capture
@@ -236,7 +237,7 @@ def _run_demo(args) -> None:
         print(f"note: {note}")
     truth = Material.load(folder / "truth").to_tensor()[None]
     truth = torch.nn.functional.interpolate(truth, size=result.material.width, mode="area")
-    truth[:, constants.NORMAL] = torch.nn.functional.normalize(truth[:, constants.NORMAL], dim=1)
+    truth[:, constants.NORMAL] = geometry.unit_vectors(truth[:, constants.NORMAL], dim=1)
     errors = {name: float(value[0]) for name, value in map_rmse(result.material.to_tensor()[None], truth).items()}
     light_error = light_error_deg(result.offset, truth_light["offset"], result.fov)
     print(f"captured {folder / 'photo.jpg'} into {args.output} in {sum(result.timings.values()):.1f} s")

@@ -36,6 +36,21 @@ def light_positions(offsets: torch.Tensor, fov: float = constants.DEFAULT_FOV_DE
     return torch.cat([offsets, height], dim=-1)
 
 
+def vector_length(vectors: torch.Tensor, dim: int = -1, keepdim: bool = False) -> torch.Tensor:
+    """Euclidean length of the vectors along ``dim``.
+
+    Written out: torch.linalg.vector_norm (and F.normalize, which calls it) over any dimension but
+    the last is 30 - 100 times slower on the CPU (torch 2.13; (1, 10, 3, 128, 128) over dim 2: 13 ms
+    against 0.2 ms), which was 70 ms of a capture's prediction.
+    """
+    return (vectors * vectors).sum(dim=dim, keepdim=keepdim).sqrt()
+
+
+def unit_vectors(vectors: torch.Tensor, dim: int = -1, eps: float = 1e-12) -> torch.Tensor:
+    """The vectors along ``dim`` made unit length (F.normalize: the length floored at ``eps``)."""
+    return vectors / vector_length(vectors, dim, keepdim=True).clamp(min=eps)
+
+
 def offset_angle_deg(offsets: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG) -> torch.Tensor:
     """Angle atan(|t| / H) of an offset as seen from the sample centre [deg], shape (...)."""
     return torch.rad2deg(torch.atan(torch.linalg.vector_norm(offsets, dim=-1) / constants.camera_height(fov)))

@@ -7,6 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from . import constants
+from .geometry import unit_vectors
 
 
 def downsample(image: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
@@ -22,4 +23,4 @@ def downsample(image: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor
 def downsample_maps(maps: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
     """Maps (B, 10, H, W) area-averaged to size x size (or (height, width)), their normals renormalised."""
     small = downsample(maps, size)
-    return torch.cat([F.normalize(small[:, constants.NORMAL], dim=1), small[:, constants.REFLECTANCE]], dim=1)
+    return torch.cat([unit_vectors(small[:, constants.NORMAL], dim=1), small[:, constants.REFLECTANCE]], dim=1)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 
 from . import constants
+from .geometry import unit_vectors
 from .errors import InputError
 
 #: Smallest map side that can be made tileable [pixels]: the blend bands need room.
@@ -50,7 +51,7 @@ def make_tileable(maps: torch.Tensor, band: float = DEFAULT_BAND, source: str = 
         weight = edge_weight(size, band).to(maps)
         weight = weight.view(1, size) if dim == -1 else weight.view(size, 1)
         blended = weight * blended + (1.0 - weight) * torch.roll(blended, shifts=size // 2, dims=dim)
-    normal = torch.nn.functional.normalize(blended[constants.NORMAL], dim=0)
+    normal = unit_vectors(blended[constants.NORMAL], dim=0)
     return torch.cat([normal, blended[constants.REFLECTANCE].clamp(0.0, 1.0)])
 
 

@@ -33,7 +33,7 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from . import constants
+from . import constants, geometry
 from .configs import differences, positive_int
 from .data.procedural import GeneratorConfig
 from .data.synth import SynthesisConfig, TrainingBatch, Variation, synthesize
@@ -384,7 +384,7 @@ def augment(maps: torch.Tensor, size: int, rng: np.random.Generator) -> torch.Te
         top, left = int(rng.integers(height - size + 1)), int(rng.integers(width - size + 1))
         maps = maps[:, top:top + size, left:left + size]
     maps = dihedral(maps, 0, bool(rng.random() < 0.5), int(rng.integers(4)))
-    maps[constants.NORMAL] = torch.nn.functional.normalize(maps[constants.NORMAL], dim=0)
+    maps[constants.NORMAL] = geometry.unit_vectors(maps[constants.NORMAL], dim=0)
     return maps
 
 
@@ -568,7 +568,7 @@ def highlight_weights(maps: torch.Tensor, lights: torch.Tensor, weight: float, f
 def normals_over_flat(slope: torch.Tensor) -> torch.Tensor:
     """The normals (B, 3, H, W) that the normal unit's slope (B, 2, H, W) gives a flat material:
     unit-normal(slope, 1), as ``DeepBasisNet`` adds it to the bases."""
-    return torch.nn.functional.normalize(torch.cat([slope, torch.ones_like(slope[:, :1])], dim=1), dim=1)
+    return geometry.unit_vectors(torch.cat([slope, torch.ones_like(slope[:, :1])], dim=1), dim=1)
 
 
 def normal_unit_loss(normals: torch.Tensor, truth: torch.Tensor, kind: str = "mse") -> torch.Tensor:

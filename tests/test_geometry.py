@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -37,3 +38,16 @@ def test_the_lighting_mark_material():
     assert maps[0, 3:6].unique().tolist() == pytest.approx([constants.LIGHTING_MARK_DIFFUSE])
     assert maps[0, 6].unique().tolist() == pytest.approx([constants.LIGHTING_MARK_ROUGHNESS])
     assert maps[0, 7:10].unique().tolist() == pytest.approx([constants.LIGHTING_MARK_SPECULAR])
+
+
+@pytest.mark.parametrize("dim", [0, 1, 2, -1])
+def test_vector_lengths_and_unit_vectors_along_any_dimension(dim):
+    torch.manual_seed(0)
+    vectors = torch.randn(3, 4, 5, 6)
+    vectors.select(3 if dim != -1 else 0, 0).zero_()  # whole zero vectors: unit_vectors leaves them zero, as F.normalize does
+    reference = np.sqrt((vectors.double().numpy() ** 2).sum(axis=dim, keepdims=True))
+    np.testing.assert_allclose(geometry.vector_length(vectors, dim, keepdim=True).numpy(), reference, rtol=1e-6)
+    assert geometry.vector_length(vectors, dim).shape == reference.squeeze(axis=dim).shape
+    unit = geometry.unit_vectors(vectors, dim)
+    expected = vectors.double().numpy() / np.maximum(reference, 1e-12)
+    np.testing.assert_allclose(unit.numpy(), expected, rtol=1e-6, atol=1e-7)

@@ -206,7 +206,7 @@ def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = consta
     highpass = shading - _gaussian_blur(shading, max(0.5, width / 64.0))
     points = geometry.pixel_points(height, width, device=photo.device, dtype=photo.dtype)[None] * extent
     towards = lights.to(photo).view(batch, 3, 1, 1) - points
-    direction = towards / torch.linalg.vector_norm(towards, dim=1, keepdim=True)
+    direction = towards / geometry.vector_length(towards, dim=1, keepdim=True)
     channels = [log_compress(photo) * 2.0 - 1.0, 0.3 * shading, highpass, 3.0 * direction[:, :2]]
     if diffuse is not None:
         albedo = diffuse.to(photo).mean(dim=1, keepdim=True) * falloff

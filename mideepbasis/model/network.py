@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .. import constants
+from .. import constants, geometry
 from .inputs import EXTRA_INPUTS, ModelInfo, decode_photo, input_channels, octave_relief_inputs, relief_channels
 from .nafnet import NAFNet
 
@@ -765,7 +765,7 @@ def add_slope(global_bases: torch.Tensor, deviations: torch.Tensor, slope: torch
     change = slope_change(slope)[:, None]
     if scaled:
         sums = global_bases[:, :, constants.NORMAL, None, None].to(deviations) + deviations[:, :, constants.NORMAL]
-        change = change * torch.linalg.vector_norm(sums, dim=2, keepdim=True)
+        change = change * geometry.vector_length(sums, dim=2, keepdim=True)
     return deviations + change
 
 

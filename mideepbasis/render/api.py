@@ -31,7 +31,7 @@ def _resized(maps: torch.Tensor, resolution: int | None) -> torch.Tensor:
         return maps
     resized = torch.nn.functional.interpolate(maps[None], size=(resolution, resolution), mode="bilinear",
                                               align_corners=False, antialias=True)[0]
-    resized[:3] = torch.nn.functional.normalize(resized[:3], dim=0)
+    resized[:3] = geometry.unit_vectors(resized[:3], dim=0)
     return resized
 
 
