@@ -247,9 +247,36 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     # deadlocked about one capture in ten (a library loaded beside running threads can).
     from .interchange import write_materialx, write_usd
     try:
-        # PNG encoding and writing overlap with the renders; the staging folder is published whole.
-        with background_writes():
-            material = result.material
+        material = result.material
+        maps = material.to_tensor()[None]
+        # The re-rendering first, before the preview thread starts: drjit is then used by that
+        # thread alone.
+        with torch.no_grad():
+            rerender = render_flash(maps, result.light_position.view(1, 1, 3), fov=result.fov,
+                                    convention=material.convention)[0, 0]
+        shown = preview_maps(maps[0])
+
+        def path_trace() -> dict[str, np.ndarray]:
+            """The previews, linear (H, W, 3), by the name of their file."""
+            scene = preview_scene(shown, environment=environment, spp=environment_spp,
+                                  convention=material.convention, sampler=environment_sampler)
+            images = {"environment": render(scene, progress=progress)}
+            for shape in ("sphere", "cloth") if shape_previews else ():
+                images[f"preview_{shape}"] = render(shape_scene(shown, shape, environment, tiles=preview_tiles,
+                                                                spp=shape_spp, convention=material.convention,
+                                                                sampler=shape_sampler))
+            if truth is not None:
+                truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
+                                            spp=environment_spp, convention=material.convention,
+                                            sampler=environment_sampler)
+                images["environment_truth"] = render(truth_scene, progress=progress)  # the same seed
+            return images
+
+        # The path tracing, the longest part, starts before every export: drjit lets go of the GIL
+        # while it traces, and the maps' encoding and writing (PNG and EXR on their own threads)
+        # and the other files run beside it. At 1024 px the exports before it had delayed it by 0.9 s.
+        with ThreadPoolExecutor(max_workers=1) as tracer, background_writes():
+            traced = tracer.submit(path_trace)
             if exr:
                 material.save(staging, format="exr")
             material.save(staging, format="png")
@@ -260,47 +287,20 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
                      "position": result.light_position.tolist(), "fov_deg": result.fov, "fov_source": result.fov_source,
                      "searched": result.searched, "search": result.search_history}
             write_bytes(staging / "light.json", _json_bytes(light))
-
-            maps = material.to_tensor()[None]
-            with torch.no_grad():
-                rerender = render_flash(maps, result.light_position.view(1, 1, 3), fov=result.fov,
-                                        convention=material.convention)[0, 0]
             error = (rerender.clamp(0, 1) - result.photo).abs()
             # Clipped by torch on every core: NumPy's clip of the permuted views took 0.4 s at 2048 px.
             write_image(staging / "photo.png", _hwc(result.photo.clamp(0, 1)), encode_srgb=True)
             write_image(staging / "rerender.png", _hwc(rerender.clamp(0, 1)), encode_srgb=True)
             write_image(staging / "error.png", _hwc((error * 4).clamp(0, 1)), encode_srgb=True)
-            shown = preview_maps(maps[0])
-
-            def path_trace() -> dict[str, np.ndarray]:
-                """The previews, linear (H, W, 3), by the name of their file."""
-                scene = preview_scene(shown, environment=environment, spp=environment_spp,
-                                      convention=material.convention, sampler=environment_sampler)
-                images = {"environment": render(scene, progress=progress)}
-                for shape in ("sphere", "cloth") if shape_previews else ():
-                    images[f"preview_{shape}"] = render(shape_scene(shown, shape, environment, tiles=preview_tiles,
-                                                                    spp=shape_spp, convention=material.convention,
-                                                                    sampler=shape_sampler))
-                if truth is not None:
-                    truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
-                                                spp=environment_spp, convention=material.convention,
-                                                sampler=environment_sampler)
-                    images["environment_truth"] = render(truth_scene, progress=progress)  # the same seed
-                return images
-
-            # drjit lets go of the GIL while it path traces: the conversions and exports below run
-            # beside it (drjit is used by this thread alone meanwhile).
-            with ThreadPoolExecutor(max_workers=1) as tracer:
-                traced = tracer.submit(path_trace)
-                (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width,
-                                                             material.convention))
-                pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
-                gltf = gltf_material(material, staging, pbr=pbr)
-                write_bytes(staging / "material.gltf", _json_bytes(gltf))
-                # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
-                write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
-                write_usd(staging)
-                images = traced.result()
+            (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width,
+                                                         material.convention))
+            pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
+            gltf = gltf_material(material, staging, pbr=pbr)
+            write_bytes(staging / "material.gltf", _json_bytes(gltf))
+            # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
+            write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
+            write_usd(staging)
+            images = traced.result()
             for name, image in images.items():
                 write_image(staging / f"{name}.png", image.clip(0, 1), encode_srgb=True)
             environment_image = images["environment"]
