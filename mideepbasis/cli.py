@@ -447,8 +447,11 @@ def run() -> None:
     worker processes and writer threads are joined. The interpreter's own teardown (freeing
     torch's and drjit's modules and thread pools) would still take about 0.5 s of a capture's 6 on
     this machine's two cores, for nothing: the streams are flushed and the process ends. Tests
-    call ``main``, which returns.
+    call ``main``, which returns. The command's rendering leaves out Mitsuba's Python integrators
+    (``render.SKIP_PYTHON_INTEGRATORS``), which none of them uses.
     """
+    # Nothing the commands run renders with Mitsuba's Python integrators (render.SKIP_PYTHON_INTEGRATORS).
+    os.environ.setdefault("MIDEEPBASIS_SKIP_MITSUBA_PYTHON_INTEGRATORS", "1")
     status = main()
     sys.stdout.flush()
     sys.stderr.flush()

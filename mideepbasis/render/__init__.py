@@ -18,8 +18,11 @@ chooses the backend that calls without an explicit ``backend`` use (``mitsuba`` 
 
 from __future__ import annotations
 
+import importlib.abc
+import importlib.machinery
 import os
 import re
+import sys
 from pathlib import Path
 
 from ..errors import MideepbasisError
@@ -139,6 +142,42 @@ def _choose_variant() -> str:
     return "llvm_ad_rgb"
 
 
+#: Set to ``1`` (the console command does), Mitsuba's switch to the variant leaves out its Python
+#: AD integrators (``prb``, ``prb_projective``, ...), which nothing in mideepbasis uses: importing
+#: them parses their source for ``dr.syntax``, 0.06 - 0.1 s of every command on two cores.
+#: A program of its own that renders with them keeps the default.
+SKIP_PYTHON_INTEGRATORS = "MIDEEPBASIS_SKIP_MITSUBA_PYTHON_INTEGRATORS"
+
+_PYTHON_INTEGRATORS = "mitsuba.python.ad.integrators"
+
+
+class _SkippedModule(importlib.abc.Loader, importlib.abc.MetaPathFinder):
+    """A finder whose module ``_PYTHON_INTEGRATORS`` runs nothing when (re)loaded."""
+
+    def find_spec(self, name, path, target=None):
+        return importlib.machinery.ModuleSpec(name, self, is_package=True) if name == _PYTHON_INTEGRATORS else None
+
+    def create_module(self, spec):
+        return None
+
+    def exec_module(self, module):
+        pass
+
+
+def _set_variant(mi, variant: str) -> None:
+    """``mi.set_variant``; with ``SKIP_PYTHON_INTEGRATORS`` set, without the reload of the Python
+    integrators that Mitsuba does on a switch to an LLVM or CUDA variant."""
+    if os.environ.get(SKIP_PYTHON_INTEGRATORS) != "1":
+        mi.set_variant(variant)
+        return
+    finder = _SkippedModule()
+    sys.meta_path.insert(0, finder)
+    try:
+        mi.set_variant(variant)
+    finally:
+        sys.meta_path.remove(finder)
+
+
 def _initialise() -> None:
     import mitsuba as mi
 
@@ -146,7 +185,7 @@ def _initialise() -> None:
         variant = _choose_variant()
         if variant.startswith("llvm"):
             ensure_llvm()
-        mi.set_variant(variant)
+        _set_variant(mi, variant)
 
 
 try:

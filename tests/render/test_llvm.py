@@ -54,3 +54,33 @@ def test_explicit_incompatible_path_is_refused(tmp_path, monkeypatch):
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "missing.so"))
     with pytest.raises(LLVMNotFoundError, match="does not exist"):
         ensure_llvm([tmp_path])
+
+
+@pytest.mark.parametrize("skip", [False, True])
+def test_the_commands_variant_switch_leaves_out_only_mitsubas_python_integrators(skip):
+    import os
+    import subprocess
+    import sys
+
+    from mideepbasis.render import SKIP_PYTHON_INTEGRATORS
+
+    program = """
+import mitsuba as mi
+import torch
+import mideepbasis.render
+from mideepbasis.render import render_flash
+maps = torch.cat([torch.tensor([0.0, 0.0, 1.0]), torch.full((7,), 0.5)]).view(1, 10, 1, 1).expand(1, 10, 8, 8)
+image = render_flash(maps.contiguous(), torch.tensor([[[0.0, 0.0, 2.0]]]))
+assert image.shape == (1, 1, 3, 8, 8) and float(image.min()) > 0, image.shape
+try:
+    mi.load_dict({"type": "prb"})
+    print(mi.variant(), "prb")
+except Exception:
+    print(mi.variant(), "no prb")
+"""
+    environment = {key: value for key, value in os.environ.items() if key != SKIP_PYTHON_INTEGRATORS}
+    if skip:
+        environment[SKIP_PYTHON_INTEGRATORS] = "1"
+    done = subprocess.run([sys.executable, "-c", program], env=environment, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["llvm_ad_rgb", "no", "prb"] if skip else done.stdout.split() == ["llvm_ad_rgb", "prb"]
