@@ -235,7 +235,7 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     """
     from .render import render_flash
     from .render.scenes import preview_scene, render, shape_scene
-    from .reporting import capture_report
+    from .reporting import report_sheet, write_report_page, write_report_sheet
 
     out = Path(out)
     check_output(out, overwrite)
@@ -300,17 +300,19 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
             # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
             write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
             write_usd(staging)
+            rerender_rmse = float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt())
+            sheet = report_sheet(result, rerender, error, rerender_rmse)  # all but the environment panel
             images = traced.result()
             for name, image in images.items():
                 write_image(staging / f"{name}.png", image.clip(0, 1), encode_srgb=True)
             environment_image = images["environment"]
+            write_report_sheet(staging, sheet, environment_image)
             if truth is not None:
                 difference = np.abs(linear_to_srgb(images["environment_truth"].clip(0, 1))
                                     - linear_to_srgb(environment_image.clip(0, 1)))
                 write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
-        # The report reads the written maps (its relighting viewer embeds them): after the writes.
-        capture_report(result, staging, rerender=rerender, error=error, environment=environment_image,
-                       rerender_rmse=float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt()))
+        # The page reads the written maps (its relighting viewer embeds them): after the writes.
+        write_report_page(result, staging, rerender_rmse)
         if out.exists():
             shutil.rmtree(out)
         os.replace(staging, out)

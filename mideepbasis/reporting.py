@@ -10,7 +10,9 @@ from __future__ import annotations
 import html
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -137,10 +139,31 @@ def _draw_curve(draw, box: tuple[int, int, int, int], values: list[float], font)
               fill=(0, 0, 0), font=font)
 
 
-def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Tensor, environment: np.ndarray,
-                   rerender_rmse: float) -> Path:
-    """``report.png`` (photo, maps, re-rendering, error, environment rendering, estimated light,
-    refinement curve, timings) and ``report.html`` around it, in ``folder``.
+@dataclass
+class ReportSheet:
+    """``report.png`` composed but for its environment panel (``report_sheet``): the sheet can be laid
+    out while the environment preview is still path traced."""
+
+    image: Any
+    """The Pillow image of the sheet."""
+
+    environment_box: tuple[int, int, int, int]
+    """Where the environment panel goes (left, top, right, bottom) [pixels]."""
+
+    def with_environment(self, environment: np.ndarray) -> np.ndarray:
+        """The whole sheet, (H, W, 3) in [0, 1], with ``environment`` (H, W, 3) linear in its panel."""
+        from PIL import Image
+
+        sheet = self.image.copy()
+        left, top = self.environment_box[:2]
+        sheet.paste(_panel_image(linear_to_srgb(environment.clip(0, 1)), REPORT_TILE - 8, Image.Resampling.BILINEAR),
+                    (left + 4, top + 4))
+        return np.asarray(sheet, dtype=np.float32) / 255.0
+
+
+def report_sheet(result, rerender: torch.Tensor, error: torch.Tensor, rerender_rmse: float) -> ReportSheet:
+    """The capture's sheet (photo, maps, re-rendering, error, estimated light, refinement curve,
+    timings) with an empty environment panel, titled: ``ReportSheet.with_environment`` fills it.
 
     The sheet is composed with Pillow, not matplotlib: importing and laying out a matplotlib
     figure took 2.8 s of a 4-s save (issue 14)."""
@@ -166,7 +189,7 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
     panels = [("photo", srgb(result.photo)), ("normal", tiles[0]), ("diffuse", tiles[1]), ("roughness", tiles[2]),
               ("specular", tiles[3]), ("re-rendering", srgb(rerender)),
               ("|error| x 4", np.clip(small(error).permute(1, 2, 0).numpy() * 4, 0, 1)),
-              ("environment (studio)", linear_to_srgb(environment.clip(0, 1)))]
+              ("environment (studio)", None)]
     size, band, columns = REPORT_TILE, REPORT_TITLE, 6
     sheet = Image.new("RGB", (columns * size, 2 * (size + band)), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
@@ -174,7 +197,8 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
     boxes = [(c * size, r * (size + band) + band, (c + 1) * size, (r + 1) * (size + band))
              for r in range(2) for c in range(columns)]
     for (title, image), box in zip(panels, boxes):
-        sheet.paste(_panel_image(image, size - 8, Image.Resampling.BILINEAR), (box[0] + 4, box[1] + 4))
+        if image is not None:
+            sheet.paste(_panel_image(image, size - 8, Image.Resampling.BILINEAR), (box[0] + 4, box[1] + 4))
         draw.text((box[0] + 6, box[1] - band + 4), title, fill=(0, 0, 0), font=title_font)
     light_box, curve_box, text_box, tiling_box = boxes[8], boxes[9], boxes[10], boxes[11]
     if result.material.provenance.get("capture", {}).get("tileable"):
@@ -200,7 +224,26 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
              + ["", f"re-render RMSE {rerender_rmse:.4f}", f"fov {result.fov:.1f} deg ({result.fov_source})"])
     draw.multiline_text((text_box[0] + 6, text_box[1] - band + 4), "\n".join(lines), fill=(0, 0, 0), font=small_font,
                         spacing=4)
-    png = write_image(Path(folder) / "report.png", np.asarray(sheet, dtype=np.float32) / 255.0)
+    return ReportSheet(image=sheet, environment_box=boxes[7])
+
+
+def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Tensor, environment: np.ndarray,
+                   rerender_rmse: float, sheet: ReportSheet | None = None) -> Path:
+    """``report.png`` (``report_sheet`` with the environment rendering) and ``report.html`` around
+    it, in ``folder``; ``sheet``: the sheet already composed (``export.save_capture`` lays it out
+    while the previews are path traced)."""
+    write_report_sheet(folder, sheet or report_sheet(result, rerender, error, rerender_rmse), environment)
+    return write_report_page(result, folder, rerender_rmse)
+
+
+def write_report_sheet(folder: Path, sheet: ReportSheet, environment: np.ndarray) -> Path:
+    """``report.png`` in ``folder``: the sheet with the environment rendering (linear (H, W, 3))."""
+    return write_image(Path(folder) / "report.png", sheet.with_environment(environment))
+
+
+def write_report_page(result, folder: Path, rerender_rmse: float) -> Path:
+    """``report.html`` in ``folder`` around its ``report.png``: the summary, the notes, the images
+    and the relighting viewer (which embeds the map files: write them first). Returns report.png's path."""
 
     rows = {"flash offset [patch half-widths]": f"({result.offset[0]:.3f}, {result.offset[1]:.3f})",
             "flash offset [deg]": f"{result.offset_angle_deg:.2f} ({'searched' if result.searched else 'given'})",
@@ -231,7 +274,7 @@ def capture_report(result, folder: Path, rerender: torch.Tensor, error: torch.Te
 </body></html>
 """
     (Path(folder) / "report.html").write_text(page)
-    return png
+    return Path(folder) / "report.png"
 
 
 # --- evaluation reports -----------------------------------------------------------------------------
