@@ -13,7 +13,8 @@ threads; for the commands, their processes') [s]:
 - ``search_refine_paper``: the same with the paper's refinement (500 steps, normals refined too);
 - ``command``: the whole ``mideepbasis capture`` command, start-up and all outputs included;
   ``command_paper`` with the paper's refinement, ``command_1024`` and ``command_2048`` with the
-  photo processed at that resolution (issue 14's targets are for these whole commands);
+  photo processed at that resolution (issue 14's targets are for these whole commands),
+  ``command_no_shapes`` without the sphere and cloth previews (what those two images cost);
 - ``search_refine_1024``: as ``search_refine`` with the photo processed at 1024x1024 (in one
   process with earlier repeats, so its peak memory holds two captures);
 - ``batch`` (``--batch N``, default 50): ``mideepbasis capture FOLDER -o OUT`` on N procedural
@@ -24,6 +25,10 @@ The command's runs happen in a child process of their own too, so the peak memor
 them (``RUSAGE_CHILDREN``: the largest of a process's children) is theirs, with one floor: Linux
 keeps in a spawned child's peak the parent's at the spawn (this process, about 0.3 GB with torch
 imported), below every command's own peak measured so far.
+
+To compare with another build, check it out (``git worktree add /tmp/before REV``) and run this
+script from that folder with ``PYTHONPATH=/tmp/before``: the commands run ``python -m
+mideepbasis.cli``, which imports the package from the current folder before ``PYTHONPATH``.
 """
 
 from __future__ import annotations
@@ -41,11 +46,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent))
 from common import RESULTS, write_report  # noqa: E402
 TARGETS_S = {"known_light": 0.5, "search": 1.0, "search_refine": 1.2, "search_refine_paper": 4.0, "command": 3.0,
-             "search_refine_1024": 5.0, "command_paper": 4.0, "command_1024": 5.0, "command_2048": 15.0}
+             "search_refine_1024": 5.0, "command_paper": 4.0, "command_1024": 5.0, "command_2048": 15.0,
+             "command_no_shapes": 3.0}
 
 #: Whole ``mideepbasis capture`` commands timed from outside: name -> options.
 COMMANDS = {"command": (), "command_paper": ("--refine-steps", "500", "--refine-normals"),
-            "command_1024": ("--resolution", "1024"), "command_2048": ("--resolution", "2048")}
+            "command_1024": ("--resolution", "1024"), "command_2048": ("--resolution", "2048"),
+            "command_no_shapes": ("--no-shape-previews",)}
 CONFIGURATIONS = {
     "known_light": {"light": (0.25, -0.17), "refine": {"steps": 0}, "resolution": 256},
     "search": {"light": None, "refine": {"steps": 0}, "resolution": 256},
