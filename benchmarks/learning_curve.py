@@ -94,9 +94,12 @@ def main() -> None:
     parser.add_argument("--first-start", type=int, default=19_288,
                         help="materials seen before the first stage (the model shipped on 2026-11-22: 2,411 steps of 8)")
     parser.add_argument("--start", type=int, default=None,
-                        help="materials seen before the stage added (default: where the last stage ended)")
+                        help="materials seen before the stage added (default: where the last stage ended); "
+                             "with one --add only, as it would apply to each")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "learning_curve.png")
     args = parser.parse_args()
+    if args.start is not None and len(args.add) > 1:
+        parser.error("--start names where one stage starts: give it with a single --add (one call per stage)")
     for label, log, batch in args.add:
         add_stage(label, Path(log), int(batch), args.first_start, args.start)
     plot(args.output)
