@@ -16,6 +16,9 @@ from typing import Any
 
 import numpy as np
 import torch
+# Here, not in report_sheet: export.save_capture lays the sheet out beside the preview thread, and
+# ImageFont loads FreeType's library, which is not to be loaded beside running threads.
+from PIL import Image, ImageDraw, ImageFont
 
 from . import constants, geometry
 from .imageio import linear_to_srgb, write_image
@@ -120,8 +123,6 @@ def _draw_light_diagram(draw, box: tuple[int, int, int, int], diagram: dict, fon
 
 def _panel_image(image: np.ndarray, size: int, resample):
     """An (H, W, 3) image in [0, 1] as an 8-bit Pillow image of ``size`` x ``size`` pixels."""
-    from PIL import Image
-
     return Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).resize((size, size), resample)
 
 
@@ -152,8 +153,6 @@ class ReportSheet:
 
     def with_environment(self, environment: np.ndarray) -> np.ndarray:
         """The whole sheet, (H, W, 3) in [0, 1], with ``environment`` (H, W, 3) linear in its panel."""
-        from PIL import Image
-
         sheet = self.image.copy()
         left, top = self.environment_box[:2]
         sheet.paste(_panel_image(linear_to_srgb(environment.clip(0, 1)), REPORT_TILE - 8, Image.Resampling.BILINEAR),
@@ -167,8 +166,6 @@ def report_sheet(result, rerender: torch.Tensor, error: torch.Tensor, rerender_r
 
     The sheet is composed with Pillow, not matplotlib: importing and laying out a matplotlib
     figure took 2.8 s of a 4-s save (issue 14)."""
-    from PIL import Image, ImageDraw, ImageFont
-
     from .resampling import downsample, downsample_maps
 
     # The panels are REPORT_TILE pixels wide: larger images are area-averaged (in linear light) to

@@ -14,8 +14,8 @@ from __future__ import annotations
 import torch
 
 from . import constants
-from .geometry import unit_vectors
 from .errors import InputError
+from .geometry import unit_vectors
 
 #: Smallest map side that can be made tileable [pixels]: the blend bands need room.
 MIN_TILEABLE_SIZE = 32
