@@ -43,7 +43,6 @@ def child(output: str, options: list[str]) -> None:
 
     start = time.perf_counter()
     marks = []
-    os.environ.setdefault("MIDEEPBASIS_SKIP_MITSUBA_PYTHON_INTEGRATORS", "1")  # as cli.run does
 
     def mark(event: str, name: str) -> None:
         marks.append((time.perf_counter() - start, event, name))
@@ -51,6 +50,9 @@ def child(output: str, options: list[str]) -> None:
     import torch  # noqa: F401
 
     mark("end", "import torch")
+    from mideepbasis import constants
+
+    os.environ.setdefault(constants.SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV, "1")  # as cli.run does
     import mideepbasis.cli as cli
 
     for name, (module_name, attribute) in MARKED.items():

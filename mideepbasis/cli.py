@@ -219,14 +219,12 @@ def _add_demo(subparsers) -> None:
 def _run_demo(args) -> None:
     import json
 
-    import torch
-
-    from . import geometry
     from .capture import capture
     from .evaluation import light_error_deg, map_rmse
     from .export import check_output, save_capture
     from .material import Material
     from .render.api import example_capture_dir
+    from .resampling import downsample_maps
 
     folder = example_capture_dir()
     truth_light = json.loads((folder / "truth.json").read_text())
@@ -236,8 +234,7 @@ def _run_demo(args) -> None:
     for note in result.notes:
         print(f"note: {note}")
     truth = Material.load(folder / "truth").to_tensor()[None]
-    truth = torch.nn.functional.interpolate(truth, size=result.material.width, mode="area")
-    truth[:, constants.NORMAL] = geometry.unit_vectors(truth[:, constants.NORMAL], dim=1)
+    truth = downsample_maps(truth, result.material.width)
     errors = {name: float(value[0]) for name, value in map_rmse(result.material.to_tensor()[None], truth).items()}
     light_error = light_error_deg(result.offset, truth_light["offset"], result.fov)
     print(f"captured {folder / 'photo.jpg'} into {args.output} in {sum(result.timings.values()):.1f} s")
@@ -450,8 +447,7 @@ def run() -> None:
     call ``main``, which returns. The command's rendering leaves out Mitsuba's Python integrators
     (``render.SKIP_PYTHON_INTEGRATORS``), which none of them uses.
     """
-    # Nothing the commands run renders with Mitsuba's Python integrators (render.SKIP_PYTHON_INTEGRATORS).
-    os.environ.setdefault("MIDEEPBASIS_SKIP_MITSUBA_PYTHON_INTEGRATORS", "1")
+    os.environ.setdefault(constants.SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV, "1")
     status = main()
     sys.stdout.flush()
     sys.stderr.flush()

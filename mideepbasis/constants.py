@@ -136,6 +136,10 @@ CAPTURE_PREVIEW_SPP = 25
 SHAPE_PREVIEW_SAMPLER = "multijitter"
 SHAPE_PREVIEW_SPP = 20
 
+#: Environment variable that, set to ``1``, makes ``mideepbasis.render`` switch Mitsuba's variant
+#: without its Python AD integrators (``render.SKIP_PYTHON_INTEGRATORS``); the console command sets it.
+SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV = "MIDEEPBASIS_SKIP_MITSUBA_PYTHON_INTEGRATORS"
+
 # --- image I/O -----------------------------------------------------------------------------------
 
 #: Largest image accepted on read, against decompression bombs [pixels].

@@ -23,7 +23,7 @@ import torch
 
 from . import constants
 from .errors import InputError
-from .geometry import vector_length
+from .geometry import unit_vectors, vector_length
 from .imageio import ImageIOError, linear_to_srgb, read_image, srgb_to_linear, write_bytes, write_image
 
 __all__ = ["Material", "MaterialError", "MAP_NAMES"]
@@ -166,7 +166,7 @@ class Material:
         t = _as_map(source, "tensor", t, constants.BASIS_CHANNELS)
         normal = t[constants.NORMAL]
         normal = torch.cat([normal[0:2], normal[2:3].clamp(min=0)], dim=0)
-        normal = normal / vector_length(normal, dim=0, keepdim=True).clamp(min=1e-12)
+        normal = unit_vectors(normal, dim=0)
         t = t.clamp(0, 1)
         return cls(normal, t[constants.DIFFUSE], t[constants.ROUGHNESS], t[constants.SPECULAR], **kwargs)
 
@@ -365,7 +365,7 @@ class Material:
         inward = normal[2] < -constants.UNIT_NORMAL_TOLERANCE
         stored_normal = None
         if repair_normals and bool(inward.any()):
-            stored_normal = normal / vector_length(normal, dim=0, keepdim=True).clamp(min=1e-12)
+            stored_normal = unit_vectors(normal, dim=0)
             normal = normal.clone()
             normal[2] = torch.where(inward, torch.full_like(normal[2], REPAIRED_NORMAL_Z), normal[2])
             normal = normal / vector_length(normal, dim=0, keepdim=True)

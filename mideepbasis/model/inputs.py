@@ -215,7 +215,6 @@ def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = consta
     return torch.cat(channels, dim=1)
 
 
-
 def octave_relief_inputs(photo: torch.Tensor, lights: torch.Tensor, octaves: int,
                          fov: float = constants.DEFAULT_FOV_DEG, convention: str = constants.DEFAULT_CONVENTION,
                          extent: float = 1.0, diffuse: torch.Tensor | None = None) -> list[torch.Tensor]:
@@ -227,6 +226,7 @@ def octave_relief_inputs(photo: torch.Tensor, lights: torch.Tensor, octaves: int
 
     return [relief_inputs(averaged(photo, octave), lights, fov, convention, extent, diffuse=averaged(diffuse, octave))
             for octave in range(octaves)]
+
 
 def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of (B, C, H, W), edges reflected."""

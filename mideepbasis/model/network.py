@@ -212,7 +212,7 @@ def to_maps(signed: torch.Tensor, dim: int = 1, upper_hemisphere: bool = True) -
 def normalize_basis_normals(signed: torch.Tensor, dim: int) -> torch.Tensor:
     """Unit-length normal part (the first 3 entries along ``dim``) of signed bases."""
     normal, rest = signed.split(constants.NORMAL_AND_REFLECTANCE, dim=dim)
-    normal = normal / ((normal * normal).sum(dim=dim, keepdim=True).sqrt() + 1e-12)
+    normal = normal / (geometry.vector_length(normal, dim, keepdim=True) + 1e-12)
     return torch.cat([normal, rest], dim=dim)
 
 

@@ -25,6 +25,7 @@ import re
 import sys
 from pathlib import Path
 
+from .. import constants
 from ..errors import MideepbasisError
 
 #: Oldest LLVM major version drjit 1.5 runs with here; 15 and 16 crash it, 14 does not load.
@@ -146,7 +147,7 @@ def _choose_variant() -> str:
 #: AD integrators (``prb``, ``prb_projective``, ...), which nothing in mideepbasis uses: importing
 #: them parses their source for ``dr.syntax``, 0.06 - 0.1 s of every command on two cores.
 #: A program of its own that renders with them keeps the default.
-SKIP_PYTHON_INTEGRATORS = "MIDEEPBASIS_SKIP_MITSUBA_PYTHON_INTEGRATORS"
+SKIP_PYTHON_INTEGRATORS = constants.SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV
 
 _PYTHON_INTEGRATORS = "mitsuba.python.ad.integrators"
 
