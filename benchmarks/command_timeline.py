@@ -2,12 +2,13 @@
 
     .venv/bin/python benchmarks/command_timeline.py [--runs 2] [-- CAPTURE OPTIONS]
 
-Each run is a fresh process that imports torch and the command-line module, wraps the stages
-(model loading, search, prediction, refinement, writing, each preview's scene and render, the
-report) with time marks, and runs ``cli.main`` on the bundled photo as the console command does
-(with Mitsuba's Python integrators left out, ``render.SKIP_PYTHON_INTEGRATORS``). The marks are
-seconds since the process started its first import. Printed per run: the time of each part
-(torch's import, the rest of start-up, each stage, the previews' renders and the scenes between
+Each run is a fresh process that imports the package (torch's import in it) and the
+command-line module, wraps the stages (model loading, search, prediction, refinement, writing,
+each preview's scene and render, the report) with time marks, and runs ``cli.main`` on the
+bundled photo as the console command does (Mitsuba's Python integrators left out,
+``render.SKIP_PYTHON_INTEGRATORS``; the start-up's objects frozen, ``startup``). The marks are
+seconds since the process started its first import. Printed per run: the time of each part (the
+package's import, the rest of start-up, each stage, the previews' renders and the scenes between
 them), and ``results/command_timeline.json``. Options after ``--`` go to ``capture``
 (``-- --resolution 1024``).
 """
@@ -24,6 +25,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 from common import RESULTS, write_report  # noqa: E402
+
+#: The first part: the package's import, torch's import in it (as in the console command).
+IMPORT = "import mideepbasis"
 
 #: (module, attribute) of the functions marked, by the name printed.
 MARKED = {"model": ("mideepbasis.capture.pipeline", "Capturer.__init__"),
@@ -47,13 +51,15 @@ def child(output: str, options: list[str]) -> None:
     def mark(event: str, name: str) -> None:
         marks.append((time.perf_counter() - start, event, name))
 
-    import torch  # noqa: F401
+    import mideepbasis  # noqa: F401  (torch's import in it, as in the console command)
 
-    mark("end", "import torch")
-    from mideepbasis import constants
+    mark("end", IMPORT)
+    from mideepbasis import constants, startup
 
     os.environ.setdefault(constants.SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV, "1")  # as cli.run does
     import mideepbasis.cli as cli
+
+    startup.freeze_startup_objects()  # as cli.run does
 
     for name, (module_name, attribute) in MARKED.items():
         owner = importlib.import_module(module_name)
@@ -81,7 +87,7 @@ def child(output: str, options: list[str]) -> None:
 
 
 def parts(marks: list) -> dict[str, float]:
-    """The parts of a run [s] from its marks: torch's import, the start-up before the model,
+    """The parts of a run [s] from its marks: the package's import, the start-up before the model,
     each stage, the previews' renders together and the writing outside them."""
     first = {}
     last = {}
@@ -95,7 +101,7 @@ def parts(marks: list) -> dict[str, float]:
             last[name] = seconds
             if name == "render" and opened is not None:
                 renders += seconds - opened
-    result = {"import torch": last["import torch"], "other start-up": first["model"] - last["import torch"]}
+    result = {IMPORT: last[IMPORT], "other start-up": first["model"] - last[IMPORT]}
     for name in ("model", "search", "predict", "refine", "write"):
         if name in first:
             result[name] = last[name] - first[name]

@@ -22,9 +22,12 @@ import os
 if "OMP_WAIT_POLICY" not in os.environ:
     os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
-from .errors import InputError, MideepbasisError  # noqa: E402
-from .imageio import ImageIOError, read_image, write_image  # noqa: E402
-from .material import Material, MaterialError  # noqa: E402
+from .startup import collection_paused  # noqa: E402
+
+with collection_paused():  # torch's import among them
+    from .errors import InputError, MideepbasisError  # noqa: E402
+    from .imageio import ImageIOError, read_image, write_image  # noqa: E402
+    from .material import Material, MaterialError  # noqa: E402
 
 __version__ = "0.1.0"
 

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from . import constants
 from .errors import InputError, MideepbasisError
+from .startup import freeze_startup_objects
 
 
 def _offset(text: str) -> tuple[float, float]:
@@ -448,6 +449,7 @@ def run() -> None:
     (``render.SKIP_PYTHON_INTEGRATORS``), which none of them uses.
     """
     os.environ.setdefault(constants.SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV, "1")
+    freeze_startup_objects()
     status = main()
     sys.stdout.flush()
     sys.stderr.flush()

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from .. import constants
 from ..errors import MideepbasisError
+from ..startup import collection_paused
 
 #: Oldest LLVM major version drjit 1.5 runs with here; 15 and 16 crash it, 14 does not load.
 MIN_LLVM_MAJOR = 17
@@ -189,14 +190,15 @@ def _initialise() -> None:
         _set_variant(mi, variant)
 
 
-try:
-    import mitsuba as _mitsuba  # noqa: F401
-except ImportError as _error:  # only the torch backend is available
-    _MITSUBA_MISSING: ImportError | None = _error
-else:
-    _MITSUBA_MISSING = None
-    _initialise()
-    from . import bsdf  # noqa: E402, F401  (registers the plugin once the variant is set)
+with collection_paused():  # drjit's and Mitsuba's imports
+    try:
+        import mitsuba as _mitsuba  # noqa: F401
+    except ImportError as _error:  # only the torch backend is available
+        _MITSUBA_MISSING: ImportError | None = _error
+    else:
+        _MITSUBA_MISSING = None
+        _initialise()
+        from . import bsdf  # noqa: E402, F401  (registers the plugin once the variant is set)
 
 
 def _flash_settings(fov, convention, intensity, backend) -> tuple[str, float, str]:
