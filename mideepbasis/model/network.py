@@ -283,6 +283,39 @@ class Encoder(nn.Module):
         return levels, global_features
 
 
+#: Smallest side [pixels] of a decoder level's input whose upsampling the first convolution folds
+#: in (``upsampled_conv``): below it the four small convolutions cost more than they save. The
+#: decoder at 128 px on two cores, batch of 4 / 1: 58 / 15 ms upsampling everywhere, 43 / 18 ms
+#: folding everywhere, 34 / 14 ms folding from 16 px on.
+PHASE_CONVOLUTION_MIN_SIZE = 16
+
+
+def _phase_taps(kernel: torch.Tensor, parity: int, dim: int) -> torch.Tensor:
+    """A 3-tap kernel axis ``dim`` folded to the 2 taps that an output of ``parity`` sees in the
+    image before a nearest x2 upsampling: even outputs see pixel i - 1 once and pixel i twice, odd
+    ones pixel i twice and pixel i + 1 once."""
+    first, middle, last = kernel.unbind(dim)
+    return torch.stack([first, middle + last] if parity == 0 else [first + middle, last], dim)
+
+
+def upsampled_conv(x: torch.Tensor, conv: nn.Conv2d) -> torch.Tensor:
+    """``conv`` (3x3, padding 1) of ``x`` (B, C, H, W) upsampled x2 by nearest neighbours, (B, O, 2H, 2W),
+    without making the upsampled copy: each of the four output phases (row and column parity) is
+    a 2x2 convolution of ``x`` with the kernel's taps summed over the pixels they see twice. The
+    same to float rounding (3e-6) in 2.25 times fewer operations: 21 -> 7 ms for the decoder's last
+    level (64 -> 10 channels, 64 -> 128 px, a batch of 4) on two cores."""
+    batch, _, height, width = x.shape
+    padded = F.pad(x, (1, 1, 1, 1))
+    phases = []
+    for row_parity in (0, 1):
+        rows = _phase_taps(conv.weight, row_parity, 2)
+        for column_parity in (0, 1):
+            window = padded[:, :, row_parity:row_parity + height + 1, column_parity:column_parity + width + 1]
+            phases.append(F.conv2d(window, _phase_taps(rows, column_parity, 3), conv.bias))
+    out = torch.stack(phases, 2).view(batch, -1, 2, 2, height, width)  # (B, O, row parity, column parity, H, W)
+    return out.permute(0, 1, 4, 2, 5, 3).reshape(batch, -1, 2 * height, 2 * width)
+
+
 class WeightDecoder(nn.Module):
     """Nearest upsampling and two 3x3 convolutions per level, U-Net skips and the global track."""
 
@@ -305,7 +338,15 @@ class WeightDecoder(nn.Module):
         for index, convs in enumerate(self.convs):
             if index > 0:
                 x = torch.cat([x, levels[-(index + 1)]], dim=1)
-            x = convs(F.leaky_relu(F.interpolate(x, scale_factor=2, mode="nearest"), 0.2))
+            # The activation commutes with the nearest upsampling, which the first convolution
+            # folds in where that is quicker.
+            first, second = convs
+            x = F.leaky_relu(x, 0.2)
+            if min(x.shape[-2:]) >= PHASE_CONVOLUTION_MIN_SIZE:
+                x = upsampled_conv(x, first)
+            else:
+                x = first(F.interpolate(x, scale_factor=2, mode="nearest"))
+            x = second(x)
             last = index == len(self.convs) - 1
             if not last:
                 mean = torch.cat([global_features, x.mean(dim=(2, 3))], dim=1)

@@ -9,8 +9,8 @@ from mideepbasis import geometry
 import numpy as np
 
 from mideepbasis.model.nafnet import LayerNorm2d, NAFNet
-from mideepbasis.model.network import (DeepBasisNet, blend, count_parameters, normalize_weights, preset, to_maps,
-                                       to_signed)
+from mideepbasis.model.network import (DeepBasisNet, WeightDecoder, blend, count_parameters, normalize_weights, preset,
+                                       to_maps, to_signed, upsampled_conv)
 
 
 def run(config, size=64, batch=2, seed=0):
@@ -132,6 +132,43 @@ def test_nafnet_gives_a_contiguous_answer_whatever_the_input_layout():
     assert torch.allclose(net(x.contiguous(memory_format=torch.channels_last)), out, atol=1e-5)
     out.square().mean().backward()  # trains: every parameter gets a gradient
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters())
+
+
+@pytest.mark.parametrize("shape", [(2, 5, 7, 3), (1, 16, 16, 16), (3, 4, 1, 1)])
+def test_a_convolution_that_folds_in_the_upsampling_is_the_convolution_of_the_upsampled_image(shape):
+    """``upsampled_conv`` against the upsampled copy convolved (values and gradients), odd and
+    one-pixel sizes included: the borders' zero padding is the same."""
+    torch.manual_seed(1)
+    batch, channels, height, width = shape
+    conv = torch.nn.Conv2d(channels, 6, 3, padding=1)
+    x = torch.randn(shape, requires_grad=True)
+    reference = conv(torch.nn.functional.interpolate(x, scale_factor=2, mode="nearest"))
+    folded = upsampled_conv(x, conv)
+    assert folded.shape == (batch, 6, 2 * height, 2 * width)
+    torch.testing.assert_close(folded, reference, atol=2e-6, rtol=1e-5)
+    weights = torch.randn_like(reference)
+    expected = torch.autograd.grad((reference * weights).sum(), (x, conv.weight, conv.bias))
+    got = torch.autograd.grad((folded * weights).sum(), (x, conv.weight, conv.bias))
+    for a, b in zip(got, expected, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)  # sums of up to 4,000 products
+
+
+def test_the_decoder_is_the_same_whichever_levels_fold_their_upsampling(monkeypatch):
+    """The decoder with every level upsampling its input and with every level folding it in."""
+    import mideepbasis.model.network as network
+
+    torch.manual_seed(2)
+    channels = (4, 6, 8, 8)
+    decoder = WeightDecoder(channels, (8, 6, 4), 3, global_size=5)
+    levels = [torch.randn(2, c, 32 // 2 ** i, 32 // 2 ** i) for i, c in enumerate(channels)]
+    features = torch.randn(2, 5)
+    with torch.no_grad():
+        monkeypatch.setattr(network, "PHASE_CONVOLUTION_MIN_SIZE", 10 ** 6)
+        upsampled = decoder(levels, features)
+        monkeypatch.setattr(network, "PHASE_CONVOLUTION_MIN_SIZE", 1)
+        folded = decoder(levels, features)
+    assert folded.shape == (2, 3, 64, 64)
+    torch.testing.assert_close(folded, upsampled, atol=1e-5, rtol=1e-5)
 
 
 def test_preset_sizes():
