@@ -26,6 +26,7 @@ import base64
 import json
 import math
 import os
+import queue
 import shutil
 import struct
 from concurrent.futures import ThreadPoolExecutor
@@ -256,21 +257,25 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
                                     convention=material.convention)[0, 0]
         shown = preview_maps(maps[0])
 
-        def path_trace() -> dict[str, np.ndarray]:
-            """The previews, linear (H, W, 3), by the name of their file."""
-            scene = preview_scene(shown, environment=environment, spp=environment_spp,
-                                  convention=material.convention, sampler=environment_sampler)
-            images = {"environment": render(scene, progress=progress)}
-            for shape in ("sphere", "cloth") if shape_previews else ():
-                images[f"preview_{shape}"] = render(shape_scene(shown, shape, environment, tiles=preview_tiles,
-                                                                spp=shape_spp, convention=material.convention,
-                                                                sampler=shape_sampler))
-            if truth is not None:
-                truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
-                                            spp=environment_spp, convention=material.convention,
-                                            sampler=environment_sampler)
-                images["environment_truth"] = render(truth_scene, progress=progress)  # the same seed
-            return images
+        finished: queue.SimpleQueue = queue.SimpleQueue()  # (file name, linear (H, W, 3)) of each preview, then None
+
+        def path_trace() -> None:
+            """The previews, each handed to ``finished`` as soon as it is traced."""
+            try:
+                scene = preview_scene(shown, environment=environment, spp=environment_spp,
+                                      convention=material.convention, sampler=environment_sampler)
+                finished.put(("environment", render(scene, progress=progress)))
+                for shape in ("sphere", "cloth") if shape_previews else ():
+                    finished.put((f"preview_{shape}", render(shape_scene(shown, shape, environment, tiles=preview_tiles,
+                                                                         spp=shape_spp, convention=material.convention,
+                                                                         sampler=shape_sampler))))
+                if truth is not None:
+                    truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
+                                                spp=environment_spp, convention=material.convention,
+                                                sampler=environment_sampler)
+                    finished.put(("environment_truth", render(truth_scene, progress=progress)))  # the same seed
+            finally:
+                finished.put(None)  # also after a failure, which ``result()`` then raises
 
         # The path tracing, the longest part, starts before every export: drjit lets go of the GIL
         # while it traces, and the maps' encoding and writing (PNG and EXR on their own threads)
@@ -302,11 +307,15 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
             write_usd(staging)
             rerender_rmse = float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt())
             sheet = report_sheet(result, rerender, error, rerender_rmse)  # all but the environment panel
-            images = traced.result()
-            for name, image in images.items():
-                write_image(staging / f"{name}.png", image.clip(0, 1), encode_srgb=True)
+            # Each preview, and the report with its environment panel, is encoded while the next traces.
+            images = {}
+            while (item := finished.get()) is not None:
+                name, images[name] = item
+                write_image(staging / f"{name}.png", images[name].clip(0, 1), encode_srgb=True)
+                if name == "environment":
+                    write_report_sheet(staging, sheet, images[name])
+            traced.result()
             environment_image = images["environment"]
-            write_report_sheet(staging, sheet, environment_image)
             if truth is not None:
                 difference = np.abs(linear_to_srgb(images["environment_truth"].clip(0, 1))
                                     - linear_to_srgb(environment_image.clip(0, 1)))
