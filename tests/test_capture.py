@@ -475,6 +475,33 @@ def test_capture_outputs_load_back_render_and_validate(tmp_path, tiny_checkpoint
     assert len(gltf.binary_blob() or gltf.decode_data_uri(gltf.buffers[0].uri)) == gltf.buffers[0].byteLength
 
 
+def test_a_preview_that_fails_to_trace_fails_the_writing_and_leaves_nothing(tmp_path, tiny_checkpoint, monkeypatch):
+    """The tracer thread hands the previews over one by one: a failure in the second one (the
+    first already written beside the exports) ends the writing with that error, without waiting
+    for a preview that never comes, and no output folder nor staging folder is left."""
+    import mideepbasis.render.scenes as scenes
+
+    truth = material(4, size=64)
+    photos, _ = flash_photos(truth, torch.tensor([[0.1, -0.1]]))
+    write_image(tmp_path / "shot.png", photos[0].permute(1, 2, 0).numpy(), encode_srgb=True)
+    result = capture(tmp_path / "shot.png", model=tiny_checkpoint, resolution=64, refine=RefineConfig(steps=0),
+                     light=(0.1, -0.1), symmetries=1)
+    traced = []
+    real_render = scenes.render
+
+    def render(scene, *args, **kwargs):
+        if traced:
+            raise RuntimeError("the sphere's trace failed")
+        traced.append(scene)
+        return real_render(scene, *args, **kwargs)
+
+    monkeypatch.setattr(scenes, "render", render)
+    with pytest.raises(RuntimeError, match="the sphere's trace failed"):
+        save_capture(result, tmp_path / "out", environment_spp=4)
+    assert len(traced) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["shot.png"]
+
+
 def run_cli(*args) -> int:
     return cli.main([str(a) for a in args])
 
