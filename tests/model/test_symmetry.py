@@ -113,9 +113,13 @@ def test_symmetrised_network_is_exactly_equivariant(overrides):
     network, photo, light = _network_and_photo(16, **overrides)
     reference = _predict(network, photo, light, 8).maps
     plain = _predict(network, photo, light, 1).maps
+    # The normal unit's relief inputs are made once, of the photo as given, and moved: a moved
+    # photo's own differ from them by float rounding (the blur's passes in the other order), which
+    # this unit's random weights amplify (the shipped model's answers agree to 2e-7).
+    atol = 1e-4 if "normal_unit_width" in overrides else 2e-5
     for symmetry in SYMMETRY_SETS[8][1:]:
         moved = _predict(network, symmetry.image(photo), symmetry.vectors(light), 8).maps
-        torch.testing.assert_close(_moved_maps(symmetry, moved, inverse=True), reference, atol=2e-5, rtol=0)
+        torch.testing.assert_close(_moved_maps(symmetry, moved, inverse=True), reference, atol=atol, rtol=0)
         unsymmetrised = _predict(network, symmetry.image(photo), symmetry.vectors(light), 1).maps
         assert (_moved_maps(symmetry, unsymmetrised, inverse=True) - plain).abs().max() > 1e-3
 
@@ -152,6 +156,29 @@ def test_symmetrised_network_in_chunks_is_the_same(monkeypatch, chunk):
     # Convolutions of batches of other sizes round differently (up to 5e-5 seen in the maps).
     torch.testing.assert_close(chunked.maps, reference.maps, atol=1e-4, rtol=0)
     torch.testing.assert_close(chunked.global_bases, reference.global_bases, atol=1e-4, rtol=0)
+
+
+def test_the_slope_averaged_over_the_group_is_each_moved_photos_slope_moved_back():
+    """``symmetrised_slope`` (relief inputs made once and moved, one batch through the unit)
+    against the slope of each moved photo under its moved flash, made from its own relief inputs
+    and moved back, averaged."""
+    from mideepbasis.model.inputs import decode_photo, encode_inputs, octave_relief_inputs
+
+    network, photo, light = _network_and_photo(16, normal_unit_width=4)
+    config = network.config
+    inputs = encode_inputs(photo, light)
+    group = SYMMETRY_SETS[8]
+    expected = 0
+    with torch.no_grad():
+        for symmetry in group:
+            moved_light = symmetry.vectors(light)
+            reliefs = octave_relief_inputs(decode_photo(symmetry.image(inputs)), moved_light,
+                                           len(config.normal_unit_octaves), convention=config.convention,
+                                           extent=config.plane_extent)
+            expected = expected + symmetry.field(network.octave_slope(reliefs), inverse=True) / len(group)
+        got = network.symmetrised_slope(inputs, light, 45.0, group)
+    assert got.shape == (1, 2, 16, 16) and expected.abs().max() > 0.1
+    torch.testing.assert_close(got, expected, atol=1e-4, rtol=0)  # the relief inputs' rounding, amplified
 
 
 def test_the_identity_alone_through_the_averaging_is_the_plain_network():
