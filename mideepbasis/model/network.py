@@ -702,7 +702,8 @@ class DeepBasisNet(nn.Module):
         batch = inputs.shape[0]
         reliefs = octave_relief_inputs(decode_photo(inputs).float(), lights.view(batch, 3).float(),
                                        len(config.normal_unit_octaves), fov, config.convention, config.plane_extent)
-        moved = [torch.cat([_moved_relief(symmetry, relief) for symmetry in group]).to(inputs.dtype) for relief in reliefs]
+        moved = [torch.cat([symmetry.image_with_vector(relief, RELIEF_DIRECTION_CHANNEL) for symmetry in group])
+                 .to(inputs.dtype) for relief in reliefs]
         return sum_moved_back(group, self.octave_slope(moved), "field") / len(group)
 
     def _moved_parts(self, inputs: torch.Tensor, lights: torch.Tensor | None, fov: float,
@@ -813,14 +814,6 @@ class DeepBasisNet(nn.Module):
         first unit's, plus the second's (``normal_booster_width``) where there is one."""
         raw = self.normal_unit(relief)
         return raw + self.normal_booster(relief) if hasattr(self, "normal_booster") else raw
-
-
-def _moved_relief(symmetry, relief: torch.Tensor) -> torch.Tensor:
-    """Relief inputs (B, C, H, W) moved by a ``model.symmetry.Symmetry``: their pixels, and the
-    flash direction's x and y (``RELIEF_DIRECTION_CHANNEL``) as the vectors they are."""
-    moved = symmetry.image(relief)
-    before, direction, after = moved.split([RELIEF_DIRECTION_CHANNEL, 2, moved.shape[1] - RELIEF_DIRECTION_CHANNEL - 2], dim=1)
-    return torch.cat([before, symmetry.vectors(direction, dim=1), after], dim=1)
 
 
 def slope_change(slope: torch.Tensor) -> torch.Tensor:

@@ -54,6 +54,14 @@ class Symmetry:
         """A vector field (B, 2+, H, W) moved as a whole: its pixels and its vectors."""
         return self.vectors(self.image(field, inverse), dim=1, inverse=inverse)
 
+    def image_with_vector(self, image: torch.Tensor, vector_channel: int) -> torch.Tensor:
+        """(..., C, H, W) an image moved with the in-plane vector whose x and y are channels
+        ``vector_channel`` and ``vector_channel + 1`` (a normal, a flash direction): its pixels,
+        and those two channels as vectors; a new tensor."""
+        moved = self.image(image)
+        before, vector, after = moved.split([vector_channel, 2, moved.shape[-3] - vector_channel - 2], dim=-3)
+        return torch.cat([before, self.vectors(vector, dim=-3), after], dim=-3)
+
 
 _IMAGE_STEPS = {"transpose": lambda image: image.transpose(-1, -2),
                 "columns": lambda image: image.flip(-1),
@@ -117,12 +125,10 @@ def dihedral(image: torch.Tensor, vector_channel: int | None, mirror: bool, turn
         image: (..., C, H, W), square; returned as a new tensor.
     """
     symmetry = mirror_and_turns(mirror, turns)
-    moved = symmetry.image(image)
-    if vector_channel is None:  # a transpose is a view, the identity the image itself: copied
-        moved = moved.contiguous()
-        return moved.clone() if moved.untyped_storage().data_ptr() == image.untyped_storage().data_ptr() else moved
-    before, vector, after = moved.split([vector_channel, 2, moved.shape[-3] - vector_channel - 2], dim=-3)
-    return torch.cat([before, symmetry.vectors(vector, dim=-3), after], dim=-3)
+    if vector_channel is not None:
+        return symmetry.image_with_vector(image, vector_channel)
+    moved = symmetry.image(image).contiguous()  # a transpose is a view, the identity the image itself: copied
+    return moved.clone() if moved.untyped_storage().data_ptr() == image.untyped_storage().data_ptr() else moved
 
 
 def check_symmetries(count) -> int:
