@@ -698,10 +698,7 @@ class DeepBasisNet(nn.Module):
         -> 201 - 224 ms."""
         from .symmetry import sum_moved_back
 
-        config = self.config
-        batch = inputs.shape[0]
-        reliefs = octave_relief_inputs(decode_photo(inputs).float(), lights.view(batch, 3).float(),
-                                       len(config.normal_unit_octaves), fov, config.convention, config.plane_extent)
+        reliefs = self.relief_inputs(decode_photo(inputs), lights.view(inputs.shape[0], 3), fov)
         moved = [torch.cat([symmetry.image_with_vector(relief, RELIEF_DIRECTION_CHANNEL) for symmetry in group])
                  .to(inputs.dtype) for relief in reliefs]
         return sum_moved_back(group, self.octave_slope(moved), "field") / len(group)
@@ -789,10 +786,16 @@ class DeepBasisNet(nn.Module):
             with torch.no_grad():
                 diffuse = DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations,
                                                      keep_bases=False).maps[:, constants.DIFFUSE].float()
-        reliefs = octave_relief_inputs(stage.photo.float(), lights.view(batch, 3).float(),
-                                       len(config.normal_unit_octaves), fov, config.convention, config.plane_extent,
-                                       diffuse=diffuse)
+        reliefs = self.relief_inputs(stage.photo, lights.view(batch, 3), fov, diffuse)
         return self.octave_slope([relief.to(stage.local_inputs.dtype) for relief in reliefs])
+
+    def relief_inputs(self, photo: torch.Tensor, lights: torch.Tensor, fov: float,
+                      diffuse: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """The normal unit's inputs at each of its octaves (``octave_relief_inputs`` with this
+        network's octaves, convention and plane extent), made in float32 whatever the autocast."""
+        config = self.config
+        return octave_relief_inputs(photo.float(), lights.float(), len(config.normal_unit_octaves), fov,
+                                    config.convention, config.plane_extent, diffuse=diffuse)
 
     def octave_slope(self, reliefs: list[torch.Tensor]) -> torch.Tensor:
         """The normal unit's slope (B, 2, H, W) from its relief inputs at each octave
