@@ -54,12 +54,9 @@ def child(output: str, options: list[str]) -> None:
     import mideepbasis  # noqa: F401  (torch's import in it, as in the console command)
 
     mark("end", IMPORT)
-    from mideepbasis import constants, startup
-
-    os.environ.setdefault(constants.SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV, "1")  # as cli.run does
     import mideepbasis.cli as cli
 
-    startup.freeze_startup_objects()  # as cli.run does
+    cli.prepare_console_process()  # as cli.run does
 
     for name, (module_name, attribute) in MARKED.items():
         owner = importlib.import_module(module_name)

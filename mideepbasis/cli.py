@@ -438,6 +438,15 @@ def main(argv: list[str] | None = None) -> int:
     return status or 0
 
 
+def prepare_console_process() -> None:
+    """What the console command sets for its own process before ``main``: rendering without
+    Mitsuba's Python integrators (``render.SKIP_PYTHON_INTEGRATORS``, unless the environment says
+    otherwise) and the start-up's objects out of later garbage collections
+    (``startup.freeze_startup_objects``)."""
+    os.environ.setdefault(constants.SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV, "1")
+    freeze_startup_objects()
+
+
 def run() -> None:
     """The console command: ``main``, then a quick exit with its status.
 
@@ -448,8 +457,7 @@ def run() -> None:
     call ``main``, which returns. The command's rendering leaves out Mitsuba's Python integrators
     (``render.SKIP_PYTHON_INTEGRATORS``), which none of them uses.
     """
-    os.environ.setdefault(constants.SKIP_MITSUBA_PYTHON_INTEGRATORS_ENV, "1")
-    freeze_startup_objects()
+    prepare_console_process()
     status = main()
     sys.stdout.flush()
     sys.stderr.flush()
