@@ -5,8 +5,9 @@
 Each run is a fresh process that imports the package (torch's import in it) and the
 command-line module, wraps the stages (model loading, search, prediction, refinement, writing,
 each preview's scene and render, the report) with time marks, and runs ``cli.main`` on the
-bundled photo as the console command does (Mitsuba's Python integrators left out,
-``render.SKIP_PYTHON_INTEGRATORS``; the start-up's objects frozen, ``startup``). The marks are
+bundled photo as the console command does (torch started without its tracing modules, Mitsuba's
+Python integrators left out, ``render.SKIP_PYTHON_INTEGRATORS``; the start-up's objects frozen,
+``startup``). The marks are
 seconds since the process started its first import. Printed per run: the time of each part (the
 package's import, the rest of start-up, each stage, the previews' renders and the scenes between
 them), and ``results/command_timeline.json``. Options after ``--`` go to ``capture``
@@ -25,6 +26,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 from common import RESULTS, write_report  # noqa: E402
+
+#: ``mideepbasis.startup.DEFER_TRACING_ENV`` (not imported here: the package imports torch).
+DEFER_TRACING_ENV = "MIDEEPBASIS_DEFER_TORCH_TRACING"
 
 #: The first part: the package's import, torch's import in it (as in the console command).
 IMPORT = "import mideepbasis"
@@ -124,8 +128,10 @@ def main() -> None:
     for index in range(args.runs):
         with tempfile.TemporaryDirectory() as folder:
             marks_file = Path(folder) / "marks.json"
+            # The console command's torch start-up (startup.tracing_modules_deferred), which this
+            # script's own command line would not get.
             subprocess.run([sys.executable, __file__, "--child", str(marks_file), *options], check=True,
-                           capture_output=True)
+                           capture_output=True, env={**os.environ, DEFER_TRACING_ENV: "1"})
             run = json.loads(marks_file.read_text())
         if run["status"] != 0:
             raise SystemExit(f"the capture command failed (status {run['status']})")

@@ -6,6 +6,10 @@ them) and finds nothing to free: 0.14 s of the package's import and 0.1 s of Mit
 project's two-core machine. ``collection_paused`` leaves it off while they are made and puts
 them straight into its oldest generation, which it scans least often; the console command,
 whose process is its own, leaves them out of every collection (``freeze_imports``).
+
+The console command also starts torch without what only tracing and compiling use
+(``tracing_modules_deferred``): a third of torch's import.
+
 Nothing here imports more than the standard library, so that it can come first.
 """
 
@@ -13,6 +17,11 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import importlib.abc
+import importlib.machinery
+import os
+import sys
+import types
 from collections.abc import Iterator
 
 #: Whether what the imports under ``collection_paused`` made is left out of every later
@@ -46,3 +55,116 @@ def freeze_startup_objects() -> None:
     global freeze_imports
     freeze_imports = True
     gc.freeze()
+
+
+#: What torch imports at its start-up for tracing and compiling models, which no mideepbasis
+#: command does: ``torch.export``, and the Python meta kernels (``torch._meta_registrations``)
+#: with the decompositions they import. They are 0.2 - 0.3 s of torch's 0.7 - 1.0 s import on this
+#: project's machine (``python -X importtime``); the two together, since ``torch.export`` imports
+#: the decompositions too.
+TRACING_MODULES = ("torch.export", "torch._meta_registrations")
+
+#: Environment variable: ``1`` defers the tracing modules in any process that imports the package
+#: first, ``0`` in none; unset, in the console command alone (``console_command``).
+DEFER_TRACING_ENV = "MIDEEPBASIS_DEFER_TORCH_TRACING"
+
+
+def console_command() -> bool:
+    """Whether this process runs the ``mideepbasis`` command: its script, or ``python -m
+    mideepbasis.cli`` (what ``DEFER_TRACING_ENV`` says, when it is set)."""
+    setting = os.environ.get(DEFER_TRACING_ENV)
+    if setting in ("0", "1"):
+        return setting == "1"
+    arguments = getattr(sys, "orig_argv", sys.argv)
+    if "-m" in arguments[1:]:  # while ``-m`` looks for its module, sys.argv[0] is "-m"
+        after = arguments[arguments.index("-m", 1) + 1:]
+        return bool(after) and after[0] == "mideepbasis.cli"
+    return os.path.basename(sys.argv[0]) == "mideepbasis"
+
+
+class _EmptyModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Imports each of ``names`` as an empty module."""
+
+    def __init__(self, names: tuple[str, ...]):
+        self.names = names
+
+    def find_spec(self, name, path=None, target=None):
+        return importlib.machinery.ModuleSpec(name, self) if name in self.names else None
+
+    def create_module(self, spec):
+        return types.ModuleType(spec.name)
+
+    def exec_module(self, module):
+        pass
+
+
+class _DeferredTorchStartUp(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Finishes torch's start-up before the first import of a torch module it has not made: imports
+    ``TRACING_MODULES`` in torch's own order, then lets that import go on.
+
+    Before anything else: ``torch._meta_registrations`` and the decompositions, references and
+    primitives that it imports work only when it comes first (imported first, ``torch._decomp``
+    fails on a circular import). When the module asked for is one that this made, its import gets
+    that module (a second run of its code would register its kernels twice)."""
+
+    def __init__(self):
+        self.made = {}
+
+    def find_spec(self, name, path=None, target=None):
+        if not name.startswith("torch.") or self.made:
+            return None
+        sys.meta_path.remove(self)
+        for module in TRACING_MODULES:
+            importlib.import_module(module)
+        if name not in sys.modules:
+            return None
+        # Out of sys.modules until this import puts it back: there, the import system would run
+        # its code again (its spec then being the module's own).
+        self.made[name] = sys.modules.pop(name)
+        return importlib.machinery.ModuleSpec(name, self)
+
+    def create_module(self, spec):
+        return self.made.pop(spec.name)
+
+    def exec_module(self, module):
+        pass
+
+
+@contextlib.contextmanager
+def tracing_modules_deferred(enabled: bool = True) -> Iterator[None]:
+    """torch imported inside starts without ``TRACING_MODULES``. They are imported, as torch
+    would have, before the first import of any other torch module, and when first named
+    (``torch.export``: one of torch's lazy modules). A capture imports neither. Eager work on CPU
+    tensors runs no Python meta kernel; only meta-device tensors made before any further torch
+    import would miss one: which no mideepbasis command makes, and why a library user's process
+    (not ``console_command``) keeps torch's whole start-up.
+
+    No effect when torch is imported already, or not ``enabled``. A torch without lazy modules
+    (``torch._lazy_modules``) gets the modules imported at the end, as if nothing was deferred."""
+    if not enabled or "torch" in sys.modules:
+        yield
+        return
+    finder = _EmptyModules(TRACING_MODULES)
+    sys.meta_path.insert(0, finder)
+    try:
+        yield
+    finally:
+        sys.meta_path.remove(finder)
+        torch = sys.modules.get("torch")
+        deferred = []
+        for name in TRACING_MODULES:
+            placeholder = sys.modules.get(name)
+            if placeholder is None or placeholder.__spec__.loader is not finder:
+                continue
+            del sys.modules[name]
+            attribute = name.rpartition(".")[2]
+            if getattr(torch, attribute, None) is placeholder:
+                delattr(torch, attribute)
+            deferred.append(attribute)
+        lazy = getattr(torch, "_lazy_modules", None)
+        if deferred and isinstance(lazy, set):
+            lazy.update(deferred)
+            sys.meta_path.insert(0, _DeferredTorchStartUp())
+        elif deferred:
+            for module in TRACING_MODULES:
+                importlib.import_module(module)

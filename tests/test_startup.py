@@ -90,3 +90,61 @@ def test_importing_the_package_leaves_a_programs_collector_as_it_was():
               "print(json.dumps([gc.isenabled(), gc.get_freeze_count()]))")
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
     assert json.loads(result.stdout.strip().splitlines()[-1]) == [True, 0]
+
+
+def _run(script: str, defer: str | None, *arguments: str) -> list:
+    """``script``'s last printed line (JSON), run in a fresh process with ``DEFER_TRACING_ENV`` set to ``defer``."""
+    import os
+
+    environment = {k: v for k, v in os.environ.items() if k != startup.DEFER_TRACING_ENV}
+    if defer is not None:
+        environment[startup.DEFER_TRACING_ENV] = defer
+    result = subprocess.run([sys.executable, "-c", script, *arguments], capture_output=True, text=True,
+                            env=environment, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+#: A Python expression: whether each deferred module (and the decompositions) is loaded.
+LOADED = "[m in sys.modules for m in ('torch.export', 'torch._meta_registrations', 'torch._decomp')]"
+
+
+def test_a_library_users_torch_starts_whole_and_the_console_commands_without_tracing():
+    script = f"import json, sys, mideepbasis; print(json.dumps({LOADED}))"
+    assert _run(script, None) == [True, True, True]  # python -c: not the console command
+    assert _run(script, "0") == [True, True, True]
+    assert _run(script, "1") == [False, False, False]
+
+
+@pytest.mark.parametrize("first", ["import torch._refs", "import torch._decomp.decompositions", "import torch._prims",
+                                   "import torch._dynamo", "torch.export.graph_signature",
+                                   "torch.optim.Adam([torch.zeros(2, requires_grad=True)]).step()"])
+def test_a_deferred_torch_finishes_its_start_up_at_the_next_torch_import(first):
+    # Whatever comes first (one of the modules that must follow the meta kernels, a torch module
+    # that imports them, the deferred torch.export by name, an optimiser, which imports
+    # torch._dynamo), torch then has all it would have had: the meta kernels (a meta-device
+    # convolution needs Python's) and torch.export, which works.
+    script = ("import json, sys, mideepbasis, torch\n"
+              f"{first}\n"
+              "shape = torch.nn.Conv2d(3, 4, 3, device='meta')(torch.ones(1, 3, 8, 8, device='meta')).shape\n"
+              "program = torch.export.export(torch.nn.Linear(2, 3), (torch.ones(1, 2),))\n"
+              f"print(json.dumps([list(shape), type(program).__name__, {LOADED}]))")
+    assert _run(script, "1") == [[1, 4, 6, 6], "ExportedProgram", [True, True, True]]
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["/venv/bin/python", "/venv/bin/mideepbasis", "capture", "p.jpg"], True),
+    (["/venv/bin/python", "-m", "mideepbasis.cli", "demo"], True),
+    (["python", "-X", "importtime", "-m", "mideepbasis.cli", "demo"], True),
+    (["python", "-m", "pytest", "-q"], False),
+    (["python", "-c", "import mideepbasis"], False),
+    (["python", "my_script.py"], False),
+])
+def test_the_console_command_is_told_from_its_command_line(monkeypatch, argv, expected):
+    monkeypatch.delenv(startup.DEFER_TRACING_ENV, raising=False)
+    monkeypatch.setattr(sys, "orig_argv", argv)
+    # What sys.argv holds while the package is imported: "-m" while -m looks for its module.
+    monkeypatch.setattr(sys, "argv", ["-m"] if "-m" in argv else argv[1:])
+    assert startup.console_command() is expected
+    monkeypatch.setenv(startup.DEFER_TRACING_ENV, "0" if expected else "1")
+    assert startup.console_command() is not expected
