@@ -148,7 +148,7 @@ def tracing_modules_deferred(enabled: bool = True) -> Iterator[None]:
     sys.meta_path.insert(0, finder)
     try:
         yield
-    finally:
+    finally:  # the placeholders gone also after a failed import, so that another attempt is torch's own
         sys.meta_path.remove(finder)
         torch = sys.modules.get("torch")
         deferred = []
@@ -161,10 +161,12 @@ def tracing_modules_deferred(enabled: bool = True) -> Iterator[None]:
             if getattr(torch, attribute, None) is placeholder:
                 delattr(torch, attribute)
             deferred.append(attribute)
-        lazy = getattr(torch, "_lazy_modules", None)
-        if deferred and isinstance(lazy, set):
-            lazy.update(deferred)
-            sys.meta_path.insert(0, _DeferredTorchStartUp())
-        elif deferred:
-            for module in TRACING_MODULES:
-                importlib.import_module(module)
+    if not deferred:
+        return
+    lazy = getattr(torch, "_lazy_modules", None)
+    if isinstance(lazy, set):
+        lazy.update(deferred)
+        sys.meta_path.insert(0, _DeferredTorchStartUp())
+    else:
+        for module in TRACING_MODULES:
+            importlib.import_module(module)

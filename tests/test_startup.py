@@ -148,3 +148,67 @@ def test_the_console_command_is_told_from_its_command_line(monkeypatch, argv, ex
     assert startup.console_command() is expected
     monkeypatch.setenv(startup.DEFER_TRACING_ENV, "0" if expected else "1")
     assert startup.console_command() is not expected
+
+
+def _fake_torch(folder, lazy: bool, fails: bool = False) -> None:
+    """A package named torch in ``folder`` that imports its two tracing modules at its start-up,
+    as torch does; each module counts its runs in ``torch.runs``."""
+    package = folder / "torch"
+    package.mkdir()
+    (package / "__init__.py").write_text(
+        "runs = []\n"
+        + ("_lazy_modules = set()\n" if lazy else "")
+        + "from torch import export\n"
+        + ("raise RuntimeError('broken start-up')\n" if fails else "")
+        + "from torch import _meta_registrations\n")
+    for name in ("export", "_meta_registrations"):
+        (package / f"{name}.py").write_text(f"import torch\ntorch.runs.append({name!r})\nREAL = True\n")
+
+
+STANDALONE_STARTUP = ("import importlib.util, json, sys\n"
+                      "spec = importlib.util.spec_from_file_location('startup', {path!r})\n"
+                      "startup = importlib.util.module_from_spec(spec); spec.loader.exec_module(startup)\n")
+
+
+@pytest.mark.parametrize("lazy", [True, False])
+def test_the_deferral_on_a_stand_in_torch(tmp_path, lazy):
+    # Independent of the installed torch: a package that imports two modules at its start-up.
+    # With lazy modules they run at the next import of a module of that package (not before);
+    # without, at the end of the start-up. Either way once each, and the real ones.
+    _fake_torch(tmp_path, lazy)
+    (tmp_path / "torch" / "other.py").write_text("")
+    script = STANDALONE_STARTUP.format(path=startup.__file__) + (
+        "with startup.tracing_modules_deferred():\n"
+        "    import torch\n"
+        "after_start = list(torch.runs)\n"
+        "import torch.other\n"
+        "import torch.export, torch._meta_registrations\n"
+        "print(json.dumps([after_start, torch.runs, torch.export.REAL, torch._meta_registrations.REAL,\n"
+        "                  sorted(getattr(torch, '_lazy_modules', []))]))\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                            env={"PYTHONPATH": str(tmp_path)}, timeout=60)
+    assert result.returncode == 0, result.stderr[-2000:]
+    after_start, runs, *real, lazy_modules = json.loads(result.stdout.strip().splitlines()[-1])
+    assert after_start == ([] if lazy else ["export", "_meta_registrations"])
+    assert runs == ["export", "_meta_registrations"] and real == [True, True]
+    assert lazy_modules == (["_meta_registrations", "export"] if lazy else [])
+
+
+def test_a_failed_start_up_leaves_no_placeholder(tmp_path):
+    # torch's own error, and a second attempt is torch's own import (no empty modules left).
+    _fake_torch(tmp_path, lazy=True, fails=True)
+    script = STANDALONE_STARTUP.format(path=startup.__file__) + (
+        "try:\n"
+        "    with startup.tracing_modules_deferred():\n"
+        "        import torch\n"
+        "except RuntimeError as error:\n"
+        "    message = str(error)\n"
+        "print(json.dumps([message, 'torch.export' in sys.modules, len(sys.meta_path)]))\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                            env={"PYTHONPATH": str(tmp_path)}, timeout=60)
+    assert result.returncode == 0, result.stderr[-2000:]
+    message, placeholder_left, finders = json.loads(result.stdout.strip().splitlines()[-1])
+    assert message == "broken start-up" and not placeholder_left
+    baseline = subprocess.run([sys.executable, "-c", "import sys; print(len(sys.meta_path))"], capture_output=True,
+                              text=True, env={"PYTHONPATH": str(tmp_path)}).stdout.strip()
+    assert finders == int(baseline)
