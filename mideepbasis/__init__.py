@@ -22,9 +22,9 @@ import os
 if "OMP_WAIT_POLICY" not in os.environ:
     os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
-from .startup import collection_paused, console_command, tracing_modules_deferred  # noqa: E402
+from .startup import collection_paused, deferring_command, tracing_modules_deferred  # noqa: E402
 
-with collection_paused(), tracing_modules_deferred(console_command()):  # torch's import among them
+with collection_paused(), tracing_modules_deferred(deferring_command()):  # torch's import among them
     from .errors import InputError, MideepbasisError  # noqa: E402
     from .imageio import ImageIOError, read_image, write_image  # noqa: E402
     from .material import Material, MaterialError  # noqa: E402

@@ -7,8 +7,8 @@ project's two-core machine. ``collection_paused`` leaves it off while they are m
 them straight into its oldest generation, which it scans least often; the console command,
 whose process is its own, leaves them out of every collection (``freeze_imports``).
 
-The console command also starts torch without what only tracing and compiling use
-(``tracing_modules_deferred``): a third of torch's import.
+The console's capture and render commands also start torch without what only tracing and
+compiling use (``tracing_modules_deferred``): a third of torch's import.
 
 Nothing here imports more than the standard library, so that it can come first.
 """
@@ -57,29 +57,42 @@ def freeze_startup_objects() -> None:
     gc.freeze()
 
 
-#: What torch imports at its start-up for tracing and compiling models, which no mideepbasis
-#: command does: ``torch.export``, and the Python meta kernels (``torch._meta_registrations``)
-#: with the decompositions they import. They are 0.2 - 0.3 s of torch's 0.7 - 1.0 s import on this
-#: project's machine (``python -X importtime``); the two together, since ``torch.export`` imports
-#: the decompositions too.
+#: What torch imports at its start-up for tracing and compiling models: ``torch.export``, and the
+#: Python meta kernels (``torch._meta_registrations``) with the decompositions and primitives they
+#: import. They are 0.2 - 0.3 s of torch's 0.7 - 1.0 s import on this project's machine (``python
+#: -X importtime``); the two together, since ``torch.export`` imports the decompositions too.
 TRACING_MODULES = ("torch.export", "torch._meta_registrations")
 
+#: The console sub-commands whose processes start torch without ``TRACING_MODULES``: those that
+#: capture and render, where the start-up is a good part of the wait. Besides tracing and meta
+#: tensors, constructing a ``torch.Generator`` needs them (the primitives give it its metaclass),
+#: which these never do and evaluation and training do.
+DEFERRING_COMMANDS = ("capture", "demo", "render")
+
 #: Environment variable: ``1`` defers the tracing modules in any process that imports the package
-#: first, ``0`` in none; unset, in the console command alone (``console_command``).
+#: first, ``0`` in none; unset, in ``DEFERRING_COMMANDS`` alone (``deferring_command``).
 DEFER_TRACING_ENV = "MIDEEPBASIS_DEFER_TORCH_TRACING"
 
 
-def console_command() -> bool:
-    """Whether this process runs the ``mideepbasis`` command: its script, or ``python -m
-    mideepbasis.cli`` (what ``DEFER_TRACING_ENV`` says, when it is set)."""
-    setting = os.environ.get(DEFER_TRACING_ENV)
-    if setting in ("0", "1"):
-        return setting == "1"
+def console_arguments() -> list[str] | None:
+    """The arguments of the ``mideepbasis`` command this process runs (its script, or ``python -m
+    mideepbasis.cli``), from its command line as it was given; None in any other process."""
     arguments = getattr(sys, "orig_argv", sys.argv)
     if "-m" in arguments[1:]:  # while ``-m`` looks for its module, sys.argv[0] is "-m"
         after = arguments[arguments.index("-m", 1) + 1:]
-        return bool(after) and after[0] == "mideepbasis.cli"
-    return os.path.basename(sys.argv[0]) == "mideepbasis"
+        return after[1:] if after and after[0] == "mideepbasis.cli" else None
+    return sys.argv[1:] if os.path.basename(sys.argv[0]) == "mideepbasis" else None
+
+
+def deferring_command() -> bool:
+    """Whether this process is one of the ``DEFERRING_COMMANDS`` (what ``DEFER_TRACING_ENV`` says,
+    when it is set)."""
+    setting = os.environ.get(DEFER_TRACING_ENV)
+    if setting in ("0", "1"):
+        return setting == "1"
+    arguments = console_arguments()
+    command = next((argument for argument in arguments or () if not argument.startswith("-")), None)
+    return command in DEFERRING_COMMANDS
 
 
 class _EmptyModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
@@ -136,8 +149,9 @@ def tracing_modules_deferred(enabled: bool = True) -> Iterator[None]:
     would have, before the first import of any other torch module, and when first named
     (``torch.export``: one of torch's lazy modules). A capture imports neither. Eager work on CPU
     tensors runs no Python meta kernel; only meta-device tensors made before any further torch
-    import would miss one: which no mideepbasis command makes, and why a library user's process
-    (not ``console_command``) keeps torch's whole start-up.
+    import would miss one, and a ``torch.Generator`` cannot be made before: which the commands
+    that defer (``deferring_command``) never do, and why a library user's process keeps torch's
+    whole start-up.
 
     No effect when torch is imported already, or not ``enabled``. A torch without lazy modules
     (``torch._lazy_modules``) gets the modules imported at the end, as if nothing was deferred."""

@@ -122,6 +122,17 @@ def test_the_console_command_exits_with_mains_status_and_its_message(tmp_path):
     assert not (tmp_path / "x.exr").exists()
 
 
+def test_the_console_evaluation_runs_with_its_seeded_generators(evaluation_dataset, tmp_path):
+    # Evaluation makes torch.Generators, which a torch started without its tracing modules cannot
+    # (startup.DEFERRING_COMMANDS): the console's evaluate must still run, in its own process.
+    folder, model = evaluation_dataset
+    result = subprocess.run([sys.executable, "-m", "mideepbasis.cli", "evaluate", "--data", str(folder), "--format",
+                             "folder", "--model", str(model), "-o", str(tmp_path / "out")],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert (tmp_path / "out" / "summary.json").is_file()
+
+
 def test_console_command_runs_the_demo(tmp_path):
     # The README's first command: capture the bundled photo with the shipped model, compare with its truth.
     result = subprocess.run([sys.executable, "-m", "mideepbasis.cli", "demo", "-o", str(tmp_path / "demo")],

@@ -109,7 +109,7 @@ def _run(script: str, defer: str | None, *arguments: str) -> list:
 LOADED = "[m in sys.modules for m in ('torch.export', 'torch._meta_registrations', 'torch._decomp')]"
 
 
-def test_a_library_users_torch_starts_whole_and_the_console_commands_without_tracing():
+def test_a_library_users_torch_starts_whole_and_a_deferring_commands_without_tracing():
     script = f"import json, sys, mideepbasis; print(json.dumps({LOADED}))"
     assert _run(script, None) == [True, True, True]  # python -c: not the console command
     assert _run(script, "0") == [True, True, True]
@@ -134,20 +134,36 @@ def test_a_deferred_torch_finishes_its_start_up_at_the_next_torch_import(first):
 
 @pytest.mark.parametrize("argv, expected", [
     (["/venv/bin/python", "/venv/bin/mideepbasis", "capture", "p.jpg"], True),
+    (["/venv/bin/python", "/venv/bin/mideepbasis", "--help"], False),
+    (["/venv/bin/python", "/venv/bin/mideepbasis", "evaluate", "--data", "d"], False),
     (["/venv/bin/python", "-m", "mideepbasis.cli", "demo"], True),
-    (["python", "-X", "importtime", "-m", "mideepbasis.cli", "demo"], True),
-    (["python", "-m", "pytest", "-q"], False),
-    (["python", "-c", "import mideepbasis"], False),
-    (["python", "my_script.py"], False),
+    (["/venv/bin/python", "-m", "mideepbasis.cli", "render", "m", "-o", "x.exr"], True),
+    (["/venv/bin/python", "-m", "mideepbasis.cli", "train", "--steps", "2"], False),
+    (["python", "-X", "importtime", "-m", "mideepbasis.cli", "capture", "p.jpg"], True),
+    (["python", "-m", "pytest", "-q", "capture"], False),
+    (["python", "-c", "import mideepbasis", "capture"], False),
+    (["python", "my_script.py", "capture"], False),
 ])
-def test_the_console_command_is_told_from_its_command_line(monkeypatch, argv, expected):
+def test_the_deferring_commands_are_told_from_their_command_line(monkeypatch, argv, expected):
     monkeypatch.delenv(startup.DEFER_TRACING_ENV, raising=False)
     monkeypatch.setattr(sys, "orig_argv", argv)
-    # What sys.argv holds while the package is imported: "-m" while -m looks for its module.
-    monkeypatch.setattr(sys, "argv", ["-m"] if "-m" in argv else argv[1:])
-    assert startup.console_command() is expected
+    # What sys.argv holds while the package is imported: "-m" first while -m looks for its module.
+    script = argv.index("-m") + 1 if "-m" in argv else 1
+    monkeypatch.setattr(sys, "argv", (["-m"] if "-m" in argv else argv[script:script + 1]) + argv[script + 1:])
+    assert startup.deferring_command() is expected
     monkeypatch.setenv(startup.DEFER_TRACING_ENV, "0" if expected else "1")
-    assert startup.console_command() is not expected
+    assert startup.deferring_command() is not expected
+
+
+@pytest.mark.parametrize("command", [["evaluate", "--help"], ["capture", "--help"]])
+def test_the_console_commands_torch_start_up(command):
+    # The console's capture starts torch without its tracing modules; evaluation, which makes
+    # torch.Generators (they need them), with its whole start-up (test_cli runs it).
+    script = ("import json, sys\n"
+              f"sys.argv = ['mideepbasis', *{command!r}]\n"
+              "import mideepbasis\n"
+              "print(json.dumps('torch._meta_registrations' in sys.modules))\n")
+    assert _run(script, None) is (command[0] != "capture")
 
 
 def _fake_torch(folder, lazy: bool, fails: bool = False) -> None:
