@@ -7,11 +7,10 @@ command-line module, wraps the stages (model loading, search, prediction, refine
 each preview's scene and render, the report) with time marks, and runs ``cli.main`` on the
 bundled photo as the console command does (torch started without its tracing modules, Mitsuba's
 Python integrators left out, ``render.SKIP_PYTHON_INTEGRATORS``; the start-up's objects frozen,
-``startup``). The marks are
-seconds since the process started its first import. Printed per run: the time of each part (the
-package's import, the rest of start-up, each stage, the previews' renders and the scenes between
-them), and ``results/command_timeline.json``. Options after ``--`` go to ``capture``
-(``-- --resolution 1024``).
+``startup``). The marks are seconds since the process started its first import. Printed per
+run: the time of each part (the package's import, the rest of start-up, each stage, the
+previews' renders and the scenes between them), and ``results/command_timeline.json``. Options
+after ``--`` go to ``capture`` (``-- --resolution 1024``).
 """
 
 from __future__ import annotations
@@ -128,7 +127,7 @@ def main() -> None:
     for index in range(args.runs):
         with tempfile.TemporaryDirectory() as folder:
             marks_file = Path(folder) / "marks.json"
-            # The console command's torch start-up (startup.tracing_modules_deferred), which this
+            # The capture command's torch start-up (startup.tracing_modules_deferred), which this
             # script's own command line would not get.
             subprocess.run([sys.executable, __file__, "--child", str(marks_file), *options], check=True,
                            capture_output=True, env={**os.environ, DEFER_TRACING_ENV: "1"})
