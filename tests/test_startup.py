@@ -181,9 +181,16 @@ def _fake_torch(folder, lazy: bool, fails: bool = False) -> None:
         (package / f"{name}.py").write_text(f"import torch\ntorch.runs.append({name!r})\nREAL = True\n")
 
 
-STANDALONE_STARTUP = ("import importlib.util, json, sys\n"
-                      "spec = importlib.util.spec_from_file_location('startup', {path!r})\n"
-                      "startup = importlib.util.module_from_spec(spec); spec.loader.exec_module(startup)\n")
+def _with_stand_in(folder, body: str) -> list:
+    """``body``'s last printed line (JSON), run in a process whose torch is the stand-in in
+    ``folder``, with ``startup`` loaded from its file (the package itself would import the real torch)."""
+    script = ("import importlib.util, json, sys\n"
+              f"spec = importlib.util.spec_from_file_location('startup', {startup.__file__!r})\n"
+              "startup = importlib.util.module_from_spec(spec); spec.loader.exec_module(startup)\n" + body)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=folder,
+                            env={"PYTHONPATH": str(folder)}, timeout=60)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])
 
 
 @pytest.mark.parametrize("lazy", [True, False])
@@ -193,18 +200,14 @@ def test_the_deferral_on_a_stand_in_torch(tmp_path, lazy):
     # without, at the end of the start-up. Either way once each, and the real ones.
     _fake_torch(tmp_path, lazy)
     (tmp_path / "torch" / "other.py").write_text("")
-    script = STANDALONE_STARTUP.format(path=startup.__file__) + (
+    after_start, runs, *real, lazy_modules = _with_stand_in(tmp_path, (
         "with startup.tracing_modules_deferred():\n"
         "    import torch\n"
         "after_start = list(torch.runs)\n"
         "import torch.other\n"
         "import torch.export, torch._meta_registrations\n"
         "print(json.dumps([after_start, torch.runs, torch.export.REAL, torch._meta_registrations.REAL,\n"
-        "                  sorted(getattr(torch, '_lazy_modules', []))]))\n")
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
-                            env={"PYTHONPATH": str(tmp_path)}, timeout=60)
-    assert result.returncode == 0, result.stderr[-2000:]
-    after_start, runs, *real, lazy_modules = json.loads(result.stdout.strip().splitlines()[-1])
+        "                  sorted(getattr(torch, '_lazy_modules', []))]))\n"))
     assert after_start == ([] if lazy else ["export", "_meta_registrations"])
     assert runs == ["export", "_meta_registrations"] and real == [True, True]
     assert lazy_modules == (["_meta_registrations", "export"] if lazy else [])
@@ -213,17 +216,13 @@ def test_the_deferral_on_a_stand_in_torch(tmp_path, lazy):
 def test_a_failed_start_up_leaves_no_placeholder(tmp_path):
     # torch's own error, and a second attempt is torch's own import (no empty modules left).
     _fake_torch(tmp_path, lazy=True, fails=True)
-    script = STANDALONE_STARTUP.format(path=startup.__file__) + (
+    message, placeholder_left, finders = _with_stand_in(tmp_path, (
         "try:\n"
         "    with startup.tracing_modules_deferred():\n"
         "        import torch\n"
         "except RuntimeError as error:\n"
         "    message = str(error)\n"
-        "print(json.dumps([message, 'torch.export' in sys.modules, len(sys.meta_path)]))\n")
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
-                            env={"PYTHONPATH": str(tmp_path)}, timeout=60)
-    assert result.returncode == 0, result.stderr[-2000:]
-    message, placeholder_left, finders = json.loads(result.stdout.strip().splitlines()[-1])
+        "print(json.dumps([message, 'torch.export' in sys.modules, len(sys.meta_path)]))\n"))
     assert message == "broken start-up" and not placeholder_left
     baseline = subprocess.run([sys.executable, "-c", "import sys; print(len(sys.meta_path))"], capture_output=True,
                               text=True, env={"PYTHONPATH": str(tmp_path)}).stdout.strip()
