@@ -95,6 +95,12 @@ def deferring_command() -> bool:
     return command in DEFERRING_COMMANDS
 
 
+def _import_tracing_modules() -> None:
+    """``TRACING_MODULES``, imported in torch's own order: what completes a deferred start-up."""
+    for module in TRACING_MODULES:
+        importlib.import_module(module)
+
+
 class _EmptyModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
     """Imports each of ``names`` as an empty module."""
 
@@ -124,11 +130,10 @@ class _DeferredTorchStartUp(importlib.abc.MetaPathFinder, importlib.abc.Loader):
         self.made = {}
 
     def find_spec(self, name, path=None, target=None):
-        if not name.startswith("torch.") or self.made:
+        if not name.startswith("torch."):
             return None
-        sys.meta_path.remove(self)
-        for module in TRACING_MODULES:
-            importlib.import_module(module)
+        sys.meta_path.remove(self)  # once: the imports below, and every later one, go without it
+        _import_tracing_modules()
         if name not in sys.modules:
             return None
         # Out of sys.modules until this import puts it back: there, the import system would run
@@ -182,5 +187,4 @@ def tracing_modules_deferred(enabled: bool = True) -> Iterator[None]:
         lazy.update(deferred)
         sys.meta_path.insert(0, _DeferredTorchStartUp())
     else:
-        for module in TRACING_MODULES:
-            importlib.import_module(module)
+        _import_tracing_modules()

@@ -220,6 +220,7 @@ def test_an_over_relaxed_search_moves_past_the_best_candidate_on_the_grid(monkey
         assert [tuple(round(float(v) / steered.step) for v in light) for light in steered.predicted_under] == lights
         assert found.offset == pytest.approx((4 * steered.step, 0.0), abs=1e-5)
 
+
 @pytest.mark.parametrize("search_resolution", [16, 32])
 def test_the_search_renders_the_networks_own_maps_where_they_are_large_enough(monkeypatch, search_resolution):
     # A network that runs at 16 px on a 32 px photo: at a 16 px objective its renders are of the
@@ -247,7 +248,6 @@ def test_the_search_renders_the_networks_own_maps_where_they_are_large_enough(mo
     torch.testing.assert_close(rendered[0], expected, atol=1e-6, rtol=0)
     if search_resolution == 16:  # what the round trip would have given differs
         assert (downsample_maps(upsampled, 16) - own).abs().max() > 1e-3
-
 
 
 @pytest.mark.parametrize("normal_unit", [False, True])
