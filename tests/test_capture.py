@@ -221,35 +221,6 @@ def test_an_over_relaxed_search_moves_past_the_best_candidate_on_the_grid(monkey
         assert found.offset == pytest.approx((4 * steered.step, 0.0), abs=1e-5)
 
 
-@pytest.mark.parametrize("search_resolution", [16, 32])
-def test_the_search_renders_the_networks_own_maps_where_they_are_large_enough(monkeypatch, search_resolution):
-    # A network that runs at 16 px on a 32 px photo: at a 16 px objective its renders are of the
-    # network's own maps, not of maps upsampled to 32 px and averaged back down (which blur them);
-    # at a 32 px objective, of the maps at the photo's size.
-    from mideepbasis.capture import search as search_module
-    from mideepbasis.capture.pipeline import predict_small
-    from mideepbasis.resampling import downsample_maps
-
-    torch.manual_seed(5)
-    model = DeepBasisNet(preset("tiny")).eval()
-    capturer = Capturer(model, CaptureConfig(fov=45.0, symmetries=1, network_resolution=16,
-                                             search=SearchConfig(grid=5, resolution=search_resolution, passes=1)))
-    photo = Photo(torch.rand(3, 32, 32) * 0.5, 45.0, "argument")
-    rendered = []
-    objective = search_module.light_objective
-    monkeypatch.setattr(search_module, "light_objective",
-                        lambda maps, *args, **kwargs: rendered.append(maps) or objective(maps, *args, **kwargs))
-    capturer.search(photo)
-    centre = geometry.light_positions(torch.zeros(1, 2), 45.0)
-    prediction = predict_small(model, photo.pixels[None], centre, 45.0, network_resolution=16, with_normal_unit=False)
-    own, upsampled = prediction.output.maps, prediction.maps
-    assert own.shape[-1] == 16 and upsampled.shape[-1] == 32
-    expected = own if search_resolution == 16 else upsampled
-    torch.testing.assert_close(rendered[0], expected, atol=1e-6, rtol=0)
-    if search_resolution == 16:  # what the round trip would have given differs
-        assert (downsample_maps(upsampled, 16) - own).abs().max() > 1e-3
-
-
 @pytest.mark.parametrize("normal_unit", [False, True])
 def test_the_search_passes_run_the_normal_unit_only_when_asked_and_the_prediction_always(normal_unit):
     torch.manual_seed(3)

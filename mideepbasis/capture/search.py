@@ -96,10 +96,8 @@ class SearchResult:
 
     @functools.cached_property
     def output(self) -> Predicted:
-        """The last pass's prediction (from ``Capturer.search``: its maps at the network's own
-        resolution where that is no smaller than the objective's, else at the photo's). A search
-        that went round a cycle predicts it again only when this is read: ``capture`` does not
-        read it."""
+        """The last pass's prediction (its maps at the search's network resolution). A search that
+        went round a cycle predicts it again only when this is read: ``capture`` does not read it."""
         return self.last_pass()
 
 
