@@ -24,8 +24,8 @@ from common import RESULTS, write_report  # noqa: E402
 
 #: (sampler, samples per pixel): the capture's preview before (64 independent) and candidates;
 #: the stratified samplers' counts are the squares (of primes for ``orthogonal``) they need.
-SETTINGS = (("independent", 64), ("independent", 25), ("multijitter", 25), ("multijitter", 36),
-            ("orthogonal", 25), ("ldsampler", 16))
+SETTINGS = (("independent", 64), ("independent", 25), ("multijitter", 16), ("multijitter", 20), ("multijitter", 25),
+            ("multijitter", 36), ("orthogonal", 25), ("ldsampler", 16))
 
 #: The same for the shape previews: the capture's before (32 independent) and candidates.
 SHAPE_SETTINGS = (("independent", 32), ("orthogonal", 25), ("multijitter", 16), ("multijitter", 20),
