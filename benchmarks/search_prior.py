@@ -5,6 +5,7 @@
     .venv/bin/python benchmarks/search_prior.py --priors 0.02 --relaxations 1 1.5 2 -o benchmarks/results/search_relaxation.json
     .venv/bin/python benchmarks/search_prior.py --priors 0.02 --normal-unit on off -o benchmarks/results/search_normal_unit.json
     .venv/bin/python benchmarks/search_prior.py --materials 100 --priors 0.02 --normal-unit off --grids 11 13 15 17 21 -o benchmarks/results/search_grid.json
+    .venv/bin/python benchmarks/search_prior.py --materials 100 --priors 0.02 --normal-unit off --starts highlight --settle-steps 0 1 --grids 11 15 -o benchmarks/results/search_start.json
 
 Procedural materials from seeds the training does not draw (5e8 + i) are rendered at 256x256 under
 seeded hand-held offsets (``sample_offsets``, as in training) and 8-bit sRGB, as ``evaluate``
@@ -14,7 +15,8 @@ the passes stop once the light moves by that many grid steps or less), and with 
 ``--relaxations`` (``SearchConfig.relaxation``: how far past the best candidate a pass moves the
 light), and with the search's network passes with or without the normal unit (``--normal-unit``,
 ``SearchConfig.normal_unit``), and with each ``--resolutions`` (``SearchConfig.resolution``: the
-candidate renders' size) and ``--grids`` (``SearchConfig.grid``: candidates per side). Reported: mean angular
+candidate renders' size), ``--grids`` (``SearchConfig.grid``: candidates per side) and ``--starts``
+(``SearchConfig.start``: the passes from the centre or from the photo's brightest spot). Reported: mean angular
 error [deg] per roughness group and overall, network passes per search, seconds per search. The shared test set is not used, so the weight is not tuned on it. Writes
 benchmarks/results/search_prior.json.
 """
@@ -57,6 +59,8 @@ def main() -> None:
                         help="SearchConfig.resolution values (the candidate renders' size [pixels])")
     parser.add_argument("--grids", type=int, nargs="+", default=[SearchConfig.grid],
                         help="SearchConfig.grid values (candidates per side)")
+    parser.add_argument("--starts", nargs="+", choices=("centre", "highlight"), default=[SearchConfig.start],
+                        help="SearchConfig.start values (where the passes start)")
     parser.add_argument("--fov", type=float, default=45.0)
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "search_prior.json")
     args = parser.parse_args()
@@ -73,17 +77,18 @@ def main() -> None:
             cases.append((group, photos[0], offset))
 
     rows = {}
-    settings = [(prior, settle, relaxation, unit, resolution, grid) for prior in args.priors
+    settings = [(prior, settle, relaxation, unit, resolution, grid, start) for prior in args.priors
                 for settle in args.settle_steps for relaxation in args.relaxations for unit in args.normal_unit
-                for resolution in args.resolutions for grid in args.grids]
-    for prior, settle, relaxation, unit, resolution, grid in settings:
+                for resolution in args.resolutions for grid in args.grids for start in args.starts]
+    for prior, settle, relaxation, unit, resolution, grid, start in settings:
         name = f"{prior:g}" if args.settle_steps == [0.0] else f"prior {prior:g}, settle {settle:g}"
         name += "" if args.relaxations == [1.0] else f", relaxation {relaxation:g}"
         name += "" if args.normal_unit == ["on"] else f", normal unit {unit}"
         name += "" if args.resolutions == [SearchConfig.resolution] else f", {resolution} px"
         name += "" if args.grids == [SearchConfig.grid] else f", grid {grid}"
+        name += "" if args.starts == [SearchConfig.start] else f", from the {start}"
         search = SearchConfig(prior=prior, settle_steps=settle, relaxation=relaxation, normal_unit=unit == "on",
-                              resolution=resolution, grid=grid)
+                              resolution=resolution, grid=grid, start=start)
         capturer = Capturer(model, CaptureConfig(fov=args.fov, search=search))
         errors = {group: [] for group in ROUGHNESS_GROUPS}
         passes = []

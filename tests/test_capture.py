@@ -100,6 +100,10 @@ def test_the_search_prior_pulls_toward_the_centre_only_where_the_photo_does_not_
     assert centred == pytest.approx((0.0, 0.0), abs=1e-6)
 
 
+#: The passes as the steered tests below follow them: from the centre, until the light stays.
+FROM_THE_CENTRE = {"start": "centre", "settle_steps": 0.0}
+
+
 class SteeredSearch:
     """A network and an objective for ``search_light`` that send the search along fixed lights:
     the material predicted under the flash at ``route[i]`` (grid steps (i, j) from the centre, where
@@ -165,7 +169,7 @@ def test_a_search_going_round_a_cycle_stops_early_where_all_its_passes_would_end
         steered = SteeredSearch(route, loop_to)
         monkeypatch.setattr(search_module, "light_objective", steered.objective)
         found = search_module.search_light(steered.predict, photo, 45.0, "physical",
-                                           config=SearchConfig(resolution=4, prior=0.0, passes=passes))
+                                           config=SearchConfig(resolution=4, prior=0.0, passes=passes, **FROM_THE_CENTRE))
         offset, last_light = steered.reference(passes)
         assert found.offset == pytest.approx(offset, abs=1e-5), passes
         # One network pass per light until the cycle closes, never more than allowed.
@@ -180,6 +184,39 @@ def test_a_search_going_round_a_cycle_stops_early_where_all_its_passes_would_end
         assert steered.predictions == expected, passes
 
 
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.4, -0.2), (-0.5, 0.3)])
+def test_the_brightest_spot_of_a_flash_photo_lies_below_the_flash(offset):
+    # A flat, uniform material: its photo is brightest where the flash is nearest and mirrors into
+    # the camera, the plane point (tx, ty) below it. The estimate's pixel is 1/16 of the width.
+    from mideepbasis.capture.search import HIGHLIGHT_GRID, highlight_offset
+
+    flat = torch.zeros(1, 10, 64, 64)
+    flat[:, 2], flat[:, 3:6], flat[:, 6], flat[:, 7:10] = 1.0, 0.3, 0.35, 0.04
+    photos, _ = flash_photos(flat, torch.tensor([offset]))
+    found = highlight_offset(photos[0])
+    assert found.tolist() == pytest.approx(offset, abs=1.01 / HIGHLIGHT_GRID)
+
+
+def test_the_search_starts_at_the_candidate_below_the_photos_brightest_spot(monkeypatch):
+    from mideepbasis.capture import search as search_module
+
+    steered = SteeredSearch([(3, -2)], loop_to=0)
+    monkeypatch.setattr(search_module, "light_objective", steered.objective)
+    photo = torch.full((3, 64, 64), 0.1)
+    spot = steered.route[1] + torch.tensor([0.3, -0.2]) * steered.step  # off the grid, nearest (3, -2)
+    column, row = int((spot[0] + 1) / 2 * 64), int((1 - spot[1]) / 2 * 64)
+    photo[:, row - 1:row + 2, column - 1:column + 2] = 1.0
+    found = search_module.search_light(steered.predict, photo, 45.0, "physical",
+                                       config=SearchConfig(resolution=4, prior=0.0, start="highlight"))
+    assert [tuple(round(float(v) / steered.step) for v in light) for light in steered.predicted_under] == [(3, -2)]
+    assert len(found.history) == 2  # that one pass settles at once (its best is where it is), then the fine grid
+    centred = SteeredSearch([(3, -2)], loop_to=0)
+    monkeypatch.setattr(search_module, "light_objective", centred.objective)
+    search_module.search_light(centred.predict, photo, 45.0, "physical", config=SearchConfig(resolution=4, prior=0.0,
+                                                                                            start="centre"))
+    assert [tuple(round(float(v) / centred.step) for v in light) for light in centred.predicted_under][0] == (0, 0)
+
+
 def test_a_settled_search_stops_once_the_light_moves_by_a_grid_step_or_less(monkeypatch):
     from mideepbasis.capture import search as search_module
 
@@ -188,12 +225,12 @@ def test_a_settled_search_stops_once_the_light_moves_by_a_grid_step_or_less(monk
     monkeypatch.setattr(search_module, "light_objective", steered.objective)
     photo = torch.zeros(3, 8, 8)
     creeping = search_module.search_light(steered.predict, photo, 45.0, "physical",
-                                          config=SearchConfig(resolution=4, prior=0.0))
+                                          config=SearchConfig(resolution=4, prior=0.0, **FROM_THE_CENTRE))
     assert steered.predictions == 4  # three moves of one step, then the light stays
     assert creeping.offset == pytest.approx(steered.reference(SearchConfig().passes)[0], abs=1e-5)
     steered.predictions = 0
     settled = search_module.search_light(steered.predict, photo, 45.0, "physical",
-                                         config=SearchConfig(resolution=4, prior=0.0, settle_steps=1.0))
+                                         config=SearchConfig(resolution=4, prior=0.0, start="centre", settle_steps=1.0))
     assert steered.predictions == 1
     # Its material (predicted at the centre) holds the fine grid at the first step.
     assert settled.offset == pytest.approx((steered.step, 0.0), abs=1e-5)
@@ -202,7 +239,7 @@ def test_a_settled_search_stops_once_the_light_moves_by_a_grid_step_or_less(monk
     leaping = SteeredSearch([(1, 2), (1, 3)], loop_to=1)
     monkeypatch.setattr(search_module, "light_objective", leaping.objective)
     found = search_module.search_light(leaping.predict, photo, 45.0, "physical",
-                                       config=SearchConfig(resolution=4, prior=0.0, settle_steps=1.0))
+                                       config=SearchConfig(resolution=4, prior=0.0, start="centre", settle_steps=1.0))
     assert leaping.predictions == 2
     assert found.offset == pytest.approx((leaping.step, 3 * leaping.step), abs=1e-5)
 
@@ -216,7 +253,8 @@ def test_an_over_relaxed_search_moves_past_the_best_candidate_on_the_grid(monkey
         steered = SteeredSearch([(1, 0), (2, 0), (3, 0), (4, 0)], loop_to=3)
         monkeypatch.setattr(search_module, "light_objective", steered.objective)
         found = search_module.search_light(steered.predict, photo, 45.0, "physical",
-                                           config=SearchConfig(resolution=4, prior=0.0, relaxation=relaxation))
+                                           config=SearchConfig(resolution=4, prior=0.0, relaxation=relaxation,
+                                                               **FROM_THE_CENTRE))
         assert [tuple(round(float(v) / steered.step) for v in light) for light in steered.predicted_under] == lights
         assert found.offset == pytest.approx((4 * steered.step, 0.0), abs=1e-5)
 
