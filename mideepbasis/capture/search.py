@@ -130,6 +130,11 @@ def candidate_offsets(fov: float, max_offset_deg: float, grid: int, centre=(0.0,
     return offsets[torch.linalg.vector_norm(offsets, dim=-1) <= limit + 1e-6]
 
 
+def nearest_candidate(candidates: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
+    """The row of ``candidates`` (K, 2) nearest ``point`` (2,), (2,)."""
+    return candidates[int(torch.argmin((candidates - point).square().sum(dim=-1)))]
+
+
 #: Size the photo's brightness is averaged to before its brightest spot is taken [pixels], and
 #: the blur over it (a Gaussian's sigma [pixels at that size]): texture smaller than a few
 #: sixteenths of the sample does not move the spot.
@@ -145,7 +150,7 @@ def highlight_offset(photo: torch.Tensor) -> torch.Tensor:
     flash's. The luminance of ``photo`` (3, H, W), linear, is averaged to ``HIGHLIGHT_GRID`` pixels
     a side and blurred, so that the spot is the shading's and not a bright fleck of the texture.
     """
-    luminance = (photo * torch.tensor([0.2126, 0.7152, 0.0722]).view(3, 1, 1)).sum(dim=0)
+    luminance = (photo * torch.tensor(constants.LUMINANCE_WEIGHTS).view(3, 1, 1)).sum(dim=0)
     small = downsample(luminance[None, None], HIGHLIGHT_GRID)[0, 0]
     radius = math.ceil(3 * HIGHLIGHT_BLUR)
     taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1, dtype=small.dtype) / HIGHLIGHT_BLUR) ** 2)
@@ -181,8 +186,7 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
     candidates = candidate_offsets(fov, config.max_offset_deg, config.grid)
     current = torch.zeros(2)
     if config.start == "highlight":
-        spot = highlight_offset(photo)
-        current = candidates[int(torch.argmin((candidates - spot).square().sum(dim=-1)))]
+        current = nearest_candidate(candidates, highlight_offset(photo))
     history = []
     output = None
 
@@ -217,7 +221,7 @@ def search_light(predict: Predictor, photo: torch.Tensor, fov: float, convention
             break
         # Toward the best candidate (relaxation 1: to it), snapped to the grid.
         target = current + config.relaxation * (best - current)
-        current = candidates[int(torch.argmin((candidates - target).square().sum(dim=-1)))]
+        current = nearest_candidate(candidates, target)
     # A finer grid around the last candidate, with the material of the last pass.
     fine = candidate_offsets(fov, config.max_offset_deg, 9, centre=tuple(current.tolist()), span=step)
     errors = objective(small_maps, fine)
