@@ -2,6 +2,7 @@
 quality against time, on held-out procedural materials and on the shared 84.
 
     .venv/bin/python benchmarks/symmetries.py [--model CKPT] [--counts 1 2 4 8] [--procedural 48]
+    .venv/bin/python benchmarks/symmetries.py --chunks 2 4 8 [--repeats 7]
 
 Quality: ``evaluate``'s default protocol (seeded hand-held offsets, light known, no refinement,
 the network at its training resolution), map RMSE in the stored encoding and the re-rendering
@@ -10,6 +11,12 @@ RMSE under its 30 lights and views, for every count on the same photos. The proc
 is not made on the test set. Time: ``Capturer.predict`` of the bundled example photo at 256 px,
 median of 7 after one untimed call. Stop any training run while it times (its figures are shared
 with the machine's other work).
+
+With ``--chunks``, only the time of the 8-symmetry prediction with each number of moved copies
+run through the network at a time (``network.SYMMETRY_CHUNK``): the chunks alternate in each
+round (the order reversed every other round), ``--repeats`` rounds after one untimed call each,
+and the largest difference of the maps from the first chunk's is reported (the chunking must not
+change the prediction); ``results/symmetry_chunks.json``.
 
 Writes benchmarks/results/symmetries.json.
 """
@@ -70,13 +77,56 @@ def timing(capturer: Capturer, counts: list[int], repeats: int = 7) -> dict:
     return seconds
 
 
+def chunk_timing(capturer: Capturer, chunks: list[int], repeats: int) -> dict:
+    """Median seconds of the bundled photo's 8-symmetry ``predict`` for each symmetry chunk, and
+    each chunk's largest map difference from the first chunk's."""
+    from mideepbasis.model import network
+
+    photo = capturer.load(f"{mideepbasis.__path__[0]}/assets/example_capture/photo.jpg")
+    predicting = capturer.with_config(symmetries=8)
+    shipped = network.SYMMETRY_CHUNK
+    times = {chunk: [] for chunk in chunks}
+    differences = {}
+    first = None
+    try:
+        for chunk in chunks:
+            network.SYMMETRY_CHUNK = chunk
+            maps = predicting.predict(photo, (0.25, -0.17)).maps
+            first = maps if first is None else first
+            differences[chunk] = float((maps - first).abs().max())
+        for round_index in range(repeats):
+            for chunk in chunks if round_index % 2 == 0 else chunks[::-1]:
+                network.SYMMETRY_CHUNK = chunk
+                start = time.perf_counter()
+                predicting.predict(photo, (0.25, -0.17)).maps
+                times[chunk].append(time.perf_counter() - start)
+    finally:
+        network.SYMMETRY_CHUNK = shipped
+    return {str(chunk): {"median_s": round(statistics.median(times[chunk]), 4),
+                         "runs_s": [round(t, 4) for t in times[chunk]],
+                         "largest_map_difference": differences[chunk]} for chunk in chunks}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 8], choices=[1, 2, 4, 8])
     parser.add_argument("--procedural", type=int, default=48, help="held-out procedural materials")
-    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "symmetries.json")
+    parser.add_argument("--chunks", type=int, nargs="+", default=None,
+                        help="time only the 8-symmetry prediction with these symmetry chunks")
+    parser.add_argument("--repeats", type=int, default=7, help="rounds of --chunks")
+    parser.add_argument("-o", "--output", type=Path, default=None,
+                        help="default results/symmetries.json, with --chunks results/symmetry_chunks.json")
     args = parser.parse_args()
+    if args.chunks:
+        capturer = Capturer(args.model, CaptureConfig(fov=constants.DEFAULT_FOV_DEG))
+        capturer.model.eval()
+        report = {"model": args.model or "shipped", "chunks": chunk_timing(capturer, args.chunks, args.repeats)}
+        for chunk, row in report["chunks"].items():
+            print(f"chunk {chunk}: {1000 * row['median_s']:.0f} ms, maps differ by at most "
+                  f"{row['largest_map_difference']:.1e}")
+        write_report(args.output or RESULTS / "symmetry_chunks.json", "symmetry_chunks", report)
+        return
     if not SHARED_TEST.is_dir():
         raise SystemExit(f"{SHARED_TEST} is absent")
     capturer = Capturer(args.model, CaptureConfig(fov=constants.DEFAULT_FOV_DEG))
@@ -96,7 +146,7 @@ def main() -> None:
             row = report[name][count]
             print(f"| {count} | {name} | {row['normal']:.4f} | {row['diffuse']:.4f} | {row['roughness']:.4f} | "
                   f"{row['specular']:.4f} | {row['rerender']:.4f} | {1000 * report['predict_seconds'][count]:.0f} |")
-    write_report(args.output, "symmetries", report)
+    write_report(args.output or RESULTS / "symmetries.json", "symmetries", report)
 
 
 if __name__ == "__main__":
