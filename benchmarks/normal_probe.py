@@ -31,8 +31,9 @@ from common import RESULTS, SHARED_TEST, write_report
 
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import SynthesisConfig, synthesize
-from mideepbasis.model.inputs import _gaussian_blur, relief_inputs
+from mideepbasis.model.inputs import relief_inputs
 from mideepbasis.model.network import normal_unit
+from mideepbasis.resampling import gaussian_blur
 from mideepbasis.train import VALIDATION_SEED
 
 SIZE, CROP, BATCH, POOL = 128, 64, 16, 512
@@ -72,10 +73,10 @@ def quadratic_features(relief: torch.Tensor) -> torch.Tensor:
     shading = relief[:, 3:4] / 0.3
     base = [relief[:, 5:6] / 3, relief[:, 6:7] / 3]
     for sigma in (1.0, 2.0, 4.0, 8.0):
-        blurred = _gaussian_blur(shading, sigma)
+        blurred = gaussian_blur(shading, sigma)
         gx = (torch.roll(blurred, -1, 3) - torch.roll(blurred, 1, 3)) / 2
         gy = (torch.roll(blurred, 1, 2) - torch.roll(blurred, -1, 2)) / 2
-        base += [shading - _gaussian_blur(shading, 2 * sigma), gx * sigma, gy * sigma]
+        base += [shading - gaussian_blur(shading, 2 * sigma), gx * sigma, gy * sigma]
     base = torch.cat(base, 1)
     products = [base[:, i:i + 1] * base[:, j:j + 1] for i in range(base.shape[1]) for j in range(i, base.shape[1])]
     return torch.cat([torch.ones_like(base[:, :1]), base, *products], 1)

@@ -21,7 +21,7 @@ import torch
 
 from .. import constants, geometry
 from ..configs import positive_int
-from ..resampling import downsample, downsample_maps
+from ..resampling import downsample, downsample_maps, gaussian_blur
 
 
 class Predicted(Protocol):
@@ -152,12 +152,8 @@ def highlight_offset(photo: torch.Tensor) -> torch.Tensor:
     """
     luminance = (photo * torch.tensor(constants.LUMINANCE_WEIGHTS).view(3, 1, 1)).sum(dim=0)
     small = downsample(luminance[None, None], HIGHLIGHT_GRID)[0, 0]
-    radius = math.ceil(3 * HIGHLIGHT_BLUR)
-    taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1, dtype=small.dtype) / HIGHLIGHT_BLUR) ** 2)
-    taps = taps / taps.sum()
-    padded = torch.nn.functional.pad(small[None, None], (radius,) * 4, mode="replicate")
-    blurred = torch.nn.functional.conv2d(torch.nn.functional.conv2d(padded, taps.view(1, 1, 1, -1)),
-                                         taps.view(1, 1, -1, 1))[0, 0]
+    blurred = gaussian_blur(small[None, None], HIGHLIGHT_BLUR, padding="replicate",
+                            radius=math.ceil(3 * HIGHLIGHT_BLUR))[0, 0]
     height, width = blurred.shape
     row, col = divmod(int(torch.argmax(blurred)), width)
     return torch.tensor([(2 * col + 1) / width - 1, 1 - (2 * row + 1) / height])

@@ -25,6 +25,7 @@ import torch
 
 from .. import constants, geometry
 from ..errors import InputError
+from ..resampling import gaussian_blur
 
 #: Constant of the log compression of the network input (the DeepBasis value).
 LOG_EPS = 0.01
@@ -153,7 +154,7 @@ def extra_input_channels(photo: torch.Tensor, names: tuple[str, ...], falloff: t
         elif name == "highpass":
             logarithm = torch.log(photo + LOG_EPS)
             sigma = max(0.5, photo.shape[-1] / 64.0)
-            channels.append((0.5 * (logarithm - _gaussian_blur(logarithm, sigma))).clamp(-1.0, 1.0))
+            channels.append((0.5 * (logarithm - gaussian_blur(logarithm, sigma))).clamp(-1.0, 1.0))
         else:
             raise ValueError(f"unknown extra input {name!r}; expected some of {EXTRA_INPUTS}")
     return torch.cat(channels, dim=1) if channels else photo.new_zeros(photo.shape[0], 0, *photo.shape[-2:])
@@ -203,7 +204,7 @@ def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = consta
     photo = photo.clamp(0.0, 1.0)
     falloff = flash_falloff(lights, height, width, fov, convention, extent).to(photo)
     shading = torch.log(photo.mean(dim=1, keepdim=True) + LOG_EPS) - torch.log(falloff + LOG_EPS)
-    highpass = shading - _gaussian_blur(shading, max(0.5, width / 64.0))
+    highpass = shading - gaussian_blur(shading, max(0.5, width / 64.0))
     points = geometry.pixel_points(height, width, device=photo.device, dtype=photo.dtype)[None] * extent
     towards = lights.to(photo).view(batch, 3, 1, 1) - points
     direction = towards / geometry.vector_length(towards, dim=1, keepdim=True)
@@ -226,18 +227,6 @@ def octave_relief_inputs(photo: torch.Tensor, lights: torch.Tensor, octaves: int
 
     return [relief_inputs(averaged(photo, octave), lights, fov, convention, extent, diffuse=averaged(diffuse, octave))
             for octave in range(octaves)]
-
-
-def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of (B, C, H, W), edges reflected."""
-    radius = max(1, int(3 * sigma))
-    offsets = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
-    kernel = torch.exp(-(offsets**2) / (2 * sigma**2))
-    kernel = (kernel / kernel.sum()).view(1, 1, 1, -1).expand(image.shape[1], 1, 1, -1)
-    padded = torch.nn.functional.pad(image, (radius, radius, 0, 0), mode="reflect")
-    image = torch.nn.functional.conv2d(padded, kernel, groups=image.shape[1])
-    padded = torch.nn.functional.pad(image, (0, 0, radius, radius), mode="reflect")
-    return torch.nn.functional.conv2d(padded, kernel.transpose(-1, -2), groups=image.shape[1])
 
 
 def network_input(photo: torch.Tensor, mark: torch.Tensor, extra_inputs: tuple[str, ...] = (),
