@@ -18,7 +18,7 @@ SHARED_TEST = Path(__file__).resolve().parents[2] / "shared" / "data" / "deschai
 
 
 #: The CPU's vector extensions that decide how quick torch and drjit's LLVM kernels are: the same
-#: code ran its previews 2.5 times slower on a 2 GHz AVX2 machine than on an AVX-512 one.
+#: code ran its previews about 2.3 times slower on a 2 GHz AVX2 machine than on an AVX-512 one.
 VECTOR_EXTENSIONS = ("avx2", "fma", "avx512f", "avx512_bf16", "avx512_vnni", "amx_bf16")
 
 
