@@ -18,7 +18,7 @@ map and with the constant ``uniform`` sky: what building the map costs each scen
 from __future__ import annotations
 
 import argparse
-import math
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -34,18 +34,18 @@ def main() -> None:
     args = parser.parse_args()
 
     import mitsuba as mi
-    import torch
 
     from mideepbasis import constants
     from mideepbasis.material import Material
     from mideepbasis.render.api import example_material_dir
-    from mideepbasis.render.scenes import ENVIRONMENTS, UNIFORM, preview_scene, render, scenes_dir, shape_scene
+    from mideepbasis.render.scenes import (ENVIRONMENTS, UNIFORM, preview_camera_position, preview_scene, render,
+                                           scenes_dir, shape_scene)
+    from mideepbasis.resampling import downsample_maps
 
     maps = Material.load(example_material_dir()).to_tensor()
-    tiny_maps = torch.nn.functional.interpolate(maps[None], size=(2, 2), mode="area")[0]
+    tiny_maps = downsample_maps(maps[None], 2)[0]
     sampler, spp = constants.CAPTURE_PREVIEW_SAMPLER, constants.CAPTURE_PREVIEW_SPP
-    elevation = math.radians(constants.PREVIEW_ELEVATION_DEG)
-    origin = [0.0, -constants.PREVIEW_DISTANCE * math.cos(elevation), constants.PREVIEW_DISTANCE * math.sin(elevation)]
+    origin = list(preview_camera_position())
 
     def variant(bsdf: str = "svbrdf", environment: bool = True, integrator: str = "direct") -> mi.Scene:
         return mi.load_dict({
@@ -95,10 +95,10 @@ def main() -> None:
                 start = time.perf_counter()
                 build()
                 times.append(time.perf_counter() - start)
-            loads[f"{name}, {environment}"] = {"first_s": round(times[0], 4),
-                                               "median_s": round(sorted(times[1:])[len(times[1:]) // 2], 4)}
+            key = f"{name}, {environment}"
+            loads[key] = {"first_s": round(times[0], 4), "median_s": round(statistics.median(times[1:]), 4)}
             print(f"load {name:12s} {environment:8s} first {times[0] * 1e3:6.1f} ms, "
-                  f"then {loads[f'{name}, {environment}']['median_s'] * 1e3:6.1f} ms")
+                  f"then {loads[key]['median_s'] * 1e3:6.1f} ms")
     write_report(args.output, "preview_cost", {"sampler": sampler, "spp": spp,
                                                "resolution": constants.PREVIEW_RESOLUTION, "results": results,
                                                "scene_loads": loads})

@@ -28,7 +28,7 @@ import statistics
 import time
 from pathlib import Path
 
-import mideepbasis
+import mideepbasis  # noqa: F401  (sets the OpenMP spin before torch loads)
 import torch
 from common import RESULTS, SHARED_TEST, write_report
 
@@ -38,6 +38,7 @@ from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.evaluation.metrics import map_rmse, rerender_rmse
 from mideepbasis.evaluation.protocol import (RERENDER_COUNT, evaluation_offsets, flash_photos, load_evaluation_materials,
                                              random_lights_and_views)
+from mideepbasis.render.api import example_capture_dir
 
 
 def quality(capturer: Capturer, truth: torch.Tensor, counts: list[int], seed: int) -> dict:
@@ -63,7 +64,7 @@ def quality(capturer: Capturer, truth: torch.Tensor, counts: list[int], seed: in
 
 def timing(capturer: Capturer, counts: list[int], repeats: int = 7) -> dict:
     """Median seconds of one ``predict`` of the bundled photo (256 px) for each count."""
-    photo = capturer.load(f"{mideepbasis.__path__[0]}/assets/example_capture/photo.jpg")
+    photo = capturer.load(example_capture_dir() / "photo.jpg")
     seconds = {}
     for count in counts:
         predicting = capturer.with_config(symmetries=count)
@@ -82,7 +83,7 @@ def chunk_timing(capturer: Capturer, chunks: list[int], repeats: int) -> dict:
     each chunk's largest map difference from the first chunk's."""
     from mideepbasis.model import network
 
-    photo = capturer.load(f"{mideepbasis.__path__[0]}/assets/example_capture/photo.jpg")
+    photo = capturer.load(example_capture_dir() / "photo.jpg")
     predicting = capturer.with_config(symmetries=8)
     shipped = network.SYMMETRY_CHUNK
     times = {chunk: [] for chunk in chunks}

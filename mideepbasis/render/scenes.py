@@ -133,6 +133,14 @@ def flash_scene(material, offset: tuple[float, float] = (0.0, 0.0), fov: float =
     return scene
 
 
+def preview_camera_position(elevation: float = constants.PREVIEW_ELEVATION_DEG,
+                            distance: float = constants.PREVIEW_DISTANCE) -> tuple[float, float, float]:
+    """Where the environment preview's camera stands (x, y, z) [patch half-widths]: ``distance``
+    from the sample centre, ``elevation`` [deg] above the sample plane, in front of it (-y)."""
+    elevation_rad = math.radians(elevation)
+    return 0.0, -distance * math.cos(elevation_rad), distance * math.sin(elevation_rad)
+
+
 def preview_scene(material, environment: str = "studio", spp: int = constants.DEFAULT_SPP,
                   resolution: int = constants.PREVIEW_RESOLUTION,
                   convention: str = constants.DEFAULT_CONVENTION,
@@ -156,9 +164,7 @@ def preview_scene(material, environment: str = "studio", spp: int = constants.DE
         pixel_format: ``rgb``, or ``rgba`` whose alpha marks the pixels that see the sample.
         sampler: Mitsuba sampler plugin (``independent``, ``multijitter``, ...).
     """
-    elevation_rad = math.radians(elevation)
-    camera = {"camera_x": 0.0, "camera_y": -distance * math.cos(elevation_rad),
-              "camera_z": distance * math.sin(elevation_rad)}
+    camera = dict(zip(("camera_x", "camera_y", "camera_z"), preview_camera_position(elevation, distance)))
     common = dict(spp=spp, resolution=resolution, preview_fov=fov, convention=convention, env_scale=scale,
                   pixel_format=pixel_format, sampler=sampler, **camera)
     part = environment_part(environment)
