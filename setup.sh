@@ -1,13 +1,56 @@
 #!/usr/bin/env bash
 # Sets up everything mideepbasis needs, idempotently: a libLLVM that drjit 1.5 can use
 # (LLVM 15 and 16 crash it; Debian 12 gets libllvm19 from apt), the virtual environment
-# .venv/ in this folder, and the package with its pinned dependencies and test tools.
+# .venv/ in this folder (made with the quickest Python 3.11 here), and the package with its
+# pinned dependencies and test tools.
 set -euo pipefail
 cd "$(dirname "$0")"
 
 have_llvm() {
     ldconfig -p 2>/dev/null | grep -Eq 'libLLVM(-(1[7-9]|[2-9][0-9])\.so|\.so\.(1[7-9]|[2-9][0-9]))'
 }
+
+# The quickest Python 3.11 that can make a virtual environment. Interpreters differ: pyenv's
+# default build (no profile-guided optimisation, a shared libpython) ran this project's Python half
+# as fast as Debian's /usr/bin/python3.11, and every capture command 0.64 s slower (5.52 against
+# 6.31 s, benchmarks/README.md, seventeenth session).
+python_speed() {  # best of 3 of a fixed loop [s], or nothing when $1 is not a Python 3.11 with venv
+    "$1" - <<'PYTHON' 2>/dev/null
+import sys, time
+if sys.version_info[:2] != (3, 11):
+    sys.exit(1)
+import ensurepip, venv  # noqa: F401  (Debian splits venv off into python3.11-venv)
+def call(value):
+    return value + 1
+def work():  # calls, attributes, a dictionary and a module-level loop, as a package's Python does
+    start, total, table = time.perf_counter(), 0, {}
+    for index in range(100_000):
+        total += call(index) + sys.maxsize.bit_length()
+        table[index & 1023] = total
+    exec("total = 0\nfor index in range(200_000): total += index", {})
+    return time.perf_counter() - start
+print(f"{min(work() for _ in range(3)):.4f}")
+PYTHON
+}
+
+choose_python() {  # prints the quickest Python 3.11 with venv found, or fails
+    local python="" best="" candidate path seconds
+    for candidate in python3.11 /usr/bin/python3.11 /usr/local/bin/python3.11 python3; do
+        path=$(command -v "$candidate" 2>/dev/null) || continue
+        seconds=$(python_speed "$path") || continue
+        if [ -z "$best" ] || awk -v a="$seconds" -v b="$best" 'BEGIN { exit !(a < b) }'; then
+            python=$path best=$seconds
+        fi
+    done
+    [ -n "$python" ] || { echo "setup: Python 3.11 with its venv module is required (Debian: apt-get install python3.11-venv)" >&2; return 1; }
+    echo "$python"
+}
+
+# ./setup.sh --which-python: the interpreter a new .venv would be made with, and nothing else.
+if [ "${1:-}" = "--which-python" ]; then
+    choose_python
+    exit
+fi
 
 if ! have_llvm && [ -z "${DRJIT_LIBLLVM_PATH:-}" ]; then
     if command -v apt-get >/dev/null 2>&1; then
@@ -22,12 +65,11 @@ if ! have_llvm && [ -z "${DRJIT_LIBLLVM_PATH:-}" ]; then
     fi
 fi
 
-python=python3.11
-command -v "$python" >/dev/null 2>&1 || python=python3
-"$python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
-    || { echo "setup: Python 3.11 is required (found $("$python" --version 2>&1))" >&2; exit 1; }
-
-[ -x .venv/bin/python ] || "$python" -m venv .venv
+if [ ! -x .venv/bin/python ]; then
+    python=$(choose_python)
+    echo "setup: creating .venv with $python"
+    "$python" -m venv .venv
+fi
 # torch is pinned to the CPU build 2.13.0 (an unpinned torch pulls gigabytes of CUDA packages).
 log=$(mktemp)
 if ! .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]" >"$log" 2>&1; then

@@ -1,0 +1,52 @@
+"""setup.sh's choice of interpreter (``./setup.sh --which-python``): the quickest Python 3.11
+found, not the first on the PATH."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SETUP = Path(__file__).resolve().parents[1] / "setup.sh"
+
+#: A Python 3.11 made slow: every call and return of the script it is given goes through a profile
+#: hook (about three times the script's time).
+SLOW_WRAPPER = """#!/bin/sh
+exec {python} -c 'import sys; sys.setprofile(lambda *a: None); exec(compile(sys.stdin.read(), "<stdin>", "exec"), {{"__name__": "__main__"}})'
+"""
+
+
+def write_script(path: Path, text: str) -> Path:
+    path.write_text(text)
+    path.chmod(0o755)
+    return path
+
+
+@pytest.mark.skipif(shutil.which("awk") is None or shutil.which("bash") is None, reason="needs bash and awk")
+def test_the_quickest_interpreter_is_chosen_not_the_first_on_the_path(tmp_path):
+    slow = write_script(tmp_path / "python3.11", SLOW_WRAPPER.format(python=sys.executable))
+    quick = write_script(tmp_path / "python3", f'#!/bin/sh\nexec {sys.executable} "$@"\n')
+    os.symlink(shutil.which("awk"), tmp_path / "awk")
+    os.symlink(shutil.which("dirname"), tmp_path / "dirname")
+    result = subprocess.run([shutil.which("bash"), str(SETUP), "--which-python"], capture_output=True, text=True,
+                            env={"PATH": str(tmp_path), "HOME": os.environ.get("HOME", "/")}, timeout=120)
+    assert result.returncode == 0, result.stderr
+    chosen = result.stdout.strip()
+    # Another quick 3.11 outside the PATH (/usr/bin/python3.11) may win too; the slow one never.
+    assert chosen != str(slow)
+    assert chosen == str(quick) or Path(chosen).is_absolute() and Path(chosen).parent != tmp_path
+
+
+def test_an_interpreter_that_is_not_3_11_is_never_chosen(tmp_path):
+    not_python = write_script(tmp_path / "python3.11", "#!/bin/sh\necho 3.12 >&2\nexit 1\n")
+    os.symlink(shutil.which("awk"), tmp_path / "awk")
+    os.symlink(shutil.which("dirname"), tmp_path / "dirname")
+    result = subprocess.run([shutil.which("bash"), str(SETUP), "--which-python"], capture_output=True, text=True,
+                            env={"PATH": str(tmp_path), "HOME": os.environ.get("HOME", "/")}, timeout=120)
+    assert str(not_python) not in result.stdout
+    if result.returncode:  # no 3.11 anywhere else: the one-line error
+        assert "Python 3.11 with its venv module is required" in result.stderr
