@@ -9,7 +9,10 @@ the kernels compiled by an untimed render first) and the sRGB RMSE of the clippe
 ``--reference-spp`` render with independent samples and another seed: the preview's noise.
 ``results/preview_noise.json``. With ``--shapes``, the same for the sphere and cloth previews
 (``render.scenes.shape_scene``, maps repeated twice as a capture shows them) with
-``SHAPE_SETTINGS``: ``results/preview_noise_shapes.json``.
+``SHAPE_SETTINGS``: ``results/preview_noise_shapes.json``. With ``--filters``, the capture's own
+sampler and count only (both previews' kinds), once with Mitsuba's Gaussian film filter and once
+box-filtered and developed by ``render.scenes.film_gaussian`` (its time included), against the
+same Gaussian-filtered reference: ``results/preview_noise_filters.json``.
 """
 
 from __future__ import annotations
@@ -37,46 +40,71 @@ def main() -> None:
     parser.add_argument("--reference-spp", type=int, default=2048)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--shapes", action="store_true", help="the sphere and cloth previews instead of the plane")
+    parser.add_argument("--filters", action="store_true",
+                        help="the capture's settings with the Gaussian film filter and with box + film_gaussian")
     parser.add_argument("-o", "--output", type=Path, default=None,
-                        help="default results/preview_noise.json, with --shapes results/preview_noise_shapes.json")
+                        help="default results/preview_noise.json (--shapes: _shapes, --filters: _filters)")
     args = parser.parse_args()
-    output = args.output or RESULTS / ("preview_noise_shapes.json" if args.shapes else "preview_noise.json")
+    output = args.output or RESULTS / ("preview_noise_filters.json" if args.filters
+                                       else "preview_noise_shapes.json" if args.shapes else "preview_noise.json")
 
     import numpy as np
 
+    from mideepbasis import constants
     from mideepbasis.data.procedural import GeneratorConfig, generate
     from mideepbasis.evaluation.environment import to_display
     from mideepbasis.material import Material
     from mideepbasis.render.api import example_material_dir
-    from mideepbasis.render.scenes import preview_scene, render, shape_scene
+    from mideepbasis.render.scenes import film_gaussian, preview_scene, render, shape_scene
 
     materials = {"procedural 7": generate(7, config=GeneratorConfig(size=256)).to_tensor(),
                  "procedural 11": generate(11, config=GeneratorConfig(size=256)).to_tensor(),
                  "example material": Material.load(example_material_dir()).to_tensor()}
-    if args.shapes:
-        scenes = {shape: (lambda maps, spp, sampler, shape=shape: shape_scene(maps, shape, spp=spp, sampler=sampler))
-                  for shape in ("sphere", "cloth")}
-        settings = SHAPE_SETTINGS
+
+    def shape_maker(shape):
+        return lambda maps, spp, sampler, rfilter="gaussian": shape_scene(maps, shape, spp=spp, sampler=sampler,
+                                                                          rfilter=rfilter)
+
+    def plane(maps, spp, sampler, rfilter="gaussian"):
+        return preview_scene(maps, spp=spp, sampler=sampler, rfilter=rfilter)
+
+    # (preview, scene maker, sampler, samples per pixel, film filter) of every row, per material.
+    if args.filters:
+        capture_settings = {"plane": (constants.CAPTURE_PREVIEW_SAMPLER, constants.CAPTURE_PREVIEW_SPP),
+                            "sphere": (constants.SHAPE_PREVIEW_SAMPLER, constants.SHAPE_PREVIEW_SPP),
+                            "cloth": (constants.SHAPE_PREVIEW_SAMPLER, constants.SHAPE_PREVIEW_SPP)}
+        makers = {"plane": plane, "sphere": shape_maker("sphere"), "cloth": shape_maker("cloth")}
+        cases = [(shape, makers[shape], *capture_settings[shape], rfilter)
+                 for shape in makers for rfilter in ("gaussian", "box")]
+    elif args.shapes:
+        cases = [(shape, shape_maker(shape), sampler, spp, "gaussian")
+                 for shape in ("sphere", "cloth") for sampler, spp in SHAPE_SETTINGS]
     else:
-        scenes = {"plane": lambda maps, spp, sampler: preview_scene(maps, spp=spp, sampler=sampler)}
-        settings = SETTINGS
+        cases = [("plane", plane, sampler, spp, "gaussian") for sampler, spp in SETTINGS]
+
     rows = []
     for name, maps in materials.items():
-        for shape, make_scene in scenes.items():
-            reference = to_display(render(make_scene(maps, args.reference_spp, "independent"), seed=7))
-            for sampler, spp in settings:
-                scene = make_scene(maps, spp, sampler)
-                render(scene)
-                times = []
-                for _ in range(args.repeats):
-                    start = time.perf_counter()
-                    image = render(scene)
-                    times.append(time.perf_counter() - start)
-                rmse = float(np.sqrt(((to_display(image) - reference) ** 2).mean()))
-                rows.append({"material": name, "shape": shape, "sampler": sampler, "spp": spp,
-                             "seconds": round(min(times), 3), "srgb_rmse": round(rmse, 5)})
-                print(f"{name:16s} {shape:6s} {sampler:12s} {spp:3d} spp: {1000 * min(times):6.0f} ms, "
-                      f"sRGB RMSE {rmse:.4f}", flush=True)
+        references = {}
+        for shape, make_scene, sampler, spp, rfilter in cases:
+            if shape not in references:
+                references[shape] = to_display(render(make_scene(maps, args.reference_spp, "independent"), seed=7))
+            scene = make_scene(maps, spp, sampler, rfilter)
+
+            def trace(scene=scene, rfilter=rfilter):
+                image = render(scene)
+                return film_gaussian(image) if rfilter == "box" else image
+
+            trace()
+            times = []
+            for _ in range(args.repeats):
+                start = time.perf_counter()
+                image = trace()
+                times.append(time.perf_counter() - start)
+            rmse = float(np.sqrt(((to_display(image) - references[shape]) ** 2).mean()))
+            rows.append({"material": name, "shape": shape, "sampler": sampler, "spp": spp, "rfilter": rfilter,
+                         "seconds": round(min(times), 3), "srgb_rmse": round(rmse, 5)})
+            print(f"{name:16s} {shape:6s} {sampler:12s} {spp:3d} spp {rfilter:8s}: {1000 * min(times):6.0f} ms, "
+                  f"sRGB RMSE {rmse:.4f}", flush=True)
     write_report(output, "preview_noise", {"reference_spp": args.reference_spp, "rows": rows})
 
 
