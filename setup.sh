@@ -34,12 +34,30 @@ PYTHON
 }
 
 choose_python() {  # prints the quickest Python 3.11 with venv found, or fails
-    local python="" best="" candidate path seconds
+    # Three rounds over the candidates in turn, each one's best kept: this machine's speed drifts
+    # within seconds, and one round once ranked the slower interpreter first.
+    local -a paths=() fastest=()
+    local candidate path real reals=" " seconds index round python="" best=""
     for candidate in python3.11 /usr/bin/python3.11 /usr/local/bin/python3.11 python3; do
         path=$(command -v "$candidate" 2>/dev/null) || continue
-        seconds=$(python_speed "$path") || continue
-        if [ -z "$best" ] || awk -v a="$seconds" -v b="$best" 'BEGIN { exit !(a < b) }'; then
-            python=$path best=$seconds
+        # Each file once, however many links lead to it (/usr/bin/python3 -> python3.11).
+        real=$(realpath "$path")
+        case "$reals" in *" $real "*) continue ;; esac
+        reals="$reals$real "
+        paths+=("$path") fastest+=("")
+    done
+    for round in 1 2 3; do
+        for index in "${!paths[@]}"; do
+            seconds=$(python_speed "${paths[$index]}") || continue
+            if [ -z "${fastest[$index]}" ] || awk -v a="$seconds" -v b="${fastest[$index]}" 'BEGIN { exit !(a < b) }'; then
+                fastest[$index]=$seconds
+            fi
+        done
+    done
+    for index in "${!paths[@]}"; do
+        [ -n "${fastest[$index]}" ] || continue
+        if [ -z "$best" ] || awk -v a="${fastest[$index]}" -v b="$best" 'BEGIN { exit !(a < b) }'; then
+            python=${paths[$index]} best=${fastest[$index]}
         fi
     done
     [ -n "$python" ] || { echo "setup: Python 3.11 with its venv module is required (Debian: apt-get install python3.11-venv)" >&2; return 1; }
