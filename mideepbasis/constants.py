@@ -136,7 +136,7 @@ CAPTURE_PREVIEW_SPP = 25
 SHAPE_PREVIEW_SAMPLER = "multijitter"
 SHAPE_PREVIEW_SPP = 20
 
-#: The film filter of a capture's previews: ``box`` (each sample in its own pixel), then Mitsuba's
+#: The film filter of the previews (a capture's, and ``render --light env``'s): ``box`` (each sample in its own pixel), then Mitsuba's
 #: Gaussian applied to the image (``render.scenes.film_gaussian``) instead of splatted sample by
 #: sample into 16 pixels. On two AVX2 cores that saved 50 - 160 ms of each 256 px preview (the
 #: three of a capture: 0.3 s), at about the same noise: sRGB RMSE to a 1,024-spp Gaussian-filtered
@@ -145,7 +145,7 @@ SHAPE_PREVIEW_SPP = 20
 #: and 0.0121 / 0.0085 / 0.0100 (benchmarks/preview_noise.py --filters). The second material, the
 #: finest, is 7 - 13 % noisier so: fewer samples in the Gaussian film's time would cost it about as
 #: much (the noise goes as one over the root of the samples).
-CAPTURE_PREVIEW_FILTER = "box"
+PREVIEW_FILM_FILTER = "box"
 
 #: Environment variable that, set to ``1``, makes ``mideepbasis.render`` switch Mitsuba's variant
 #: without its Python AD integrators (``render.SKIP_PYTHON_INTEGRATORS``); the console command sets it.

@@ -235,7 +235,7 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     ``shape_previews`` is False: two path-traced images fewer).
     """
     from .render import render_flash
-    from .render.scenes import film_gaussian, preview_scene, render, shape_scene
+    from .render.scenes import preview_scene, render_preview, shape_scene
     from .reporting import report_sheet, write_report_page, write_report_sheet
 
     out = Path(out)
@@ -259,28 +259,24 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
 
         finished: queue.SimpleQueue = queue.SimpleQueue()  # (file name, linear (H, W, 3)) of each preview, then None
 
-        rfilter = constants.CAPTURE_PREVIEW_FILTER
-
-        def developed(scene, **options) -> np.ndarray:
-            """``render``, developed with the Gaussian film filter whichever filter traced it."""
-            image = render(scene, **options)
-            return film_gaussian(image) if rfilter == "box" else image
+        rfilter = constants.PREVIEW_FILM_FILTER
 
         def path_trace() -> None:
             """The previews, each handed to ``finished`` as soon as it is traced."""
             try:
                 scene = preview_scene(shown, environment=environment, spp=environment_spp,
                                       convention=material.convention, sampler=environment_sampler, rfilter=rfilter)
-                finished.put(("environment", developed(scene, progress=progress)))
+                finished.put(("environment", render_preview(scene, rfilter, progress=progress)))
                 for shape in ("sphere", "cloth") if shape_previews else ():
                     shape_view = shape_scene(shown, shape, environment, tiles=preview_tiles, spp=shape_spp,
                                              convention=material.convention, sampler=shape_sampler, rfilter=rfilter)
-                    finished.put((f"preview_{shape}", developed(shape_view)))
+                    finished.put((f"preview_{shape}", render_preview(shape_view, rfilter)))
                 if truth is not None:
                     truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
                                                 spp=environment_spp, convention=material.convention,
                                                 sampler=environment_sampler, rfilter=rfilter)
-                    finished.put(("environment_truth", developed(truth_scene, progress=progress)))  # the same seed
+                    # The same seed as the capture's.
+                    finished.put(("environment_truth", render_preview(truth_scene, rfilter, progress=progress)))
             finally:
                 finished.put(None)  # also after a failure, which ``result()`` then raises
 

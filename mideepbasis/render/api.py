@@ -66,8 +66,8 @@ def render_material(material, light: str = "flash", fov: float = constants.DEFAU
     if light == "env":
         scene = scenes.shape_scene(maps, shape=shape, environment=environment, tiles=tiles,
                                    spp=spp or constants.DEFAULT_SPP, resolution=resolution or constants.PREVIEW_RESOLUTION,
-                                   convention=convention)
-        return scenes.render(scene, seed=seed, progress=progress)
+                                   convention=convention, rfilter=constants.PREVIEW_FILM_FILTER)
+        return scenes.render_preview(scene, constants.PREVIEW_FILM_FILTER, seed=seed, progress=progress)
     if shape != "plane":
         raise InputError(f"--shape {shape} needs --light env (the flash capture sees the sample plane)")
     if light != "flash":

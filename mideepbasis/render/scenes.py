@@ -252,3 +252,11 @@ def film_gaussian(image: np.ndarray, stddev: float = FILM_GAUSSIAN_STDDEV) -> np
     image = np.asarray(image, dtype=np.float32)
     coverage = blur(np.ones(image.shape[:2] + (1,), dtype=np.float32))
     return (blur(image) / coverage).astype(np.float32)
+
+
+def render_preview(scene: mi.Scene, rfilter: str = constants.PREVIEW_FILM_FILTER, **options) -> np.ndarray:
+    """``render`` (its ``options``) of a preview scene built with the film filter ``rfilter``: one
+    built with ``box`` is developed by ``film_gaussian``, so that either looks like Mitsuba's
+    Gaussian film. Returns linear radiance, (H, W, 3) float32."""
+    image = render(scene, **options)
+    return film_gaussian(image) if rfilter == "box" else image
