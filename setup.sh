@@ -33,6 +33,10 @@ print(f"{min(work() for _ in range(3)):.4f}")
 PYTHON
 }
 
+less_than() {  # whether the number $1 is below the number $2 (bash compares integers only)
+    awk -v a="$1" -v b="$2" 'BEGIN { exit !(a < b) }'
+}
+
 choose_python() {  # prints the quickest Python 3.11 with venv found, or fails
     # Three rounds over the candidates in turn, each one's best kept: this machine's speed drifts
     # within seconds, and one round once ranked the slower interpreter first.
@@ -49,18 +53,21 @@ choose_python() {  # prints the quickest Python 3.11 with venv found, or fails
     for round in 1 2 3; do
         for index in "${!paths[@]}"; do
             seconds=$(python_speed "${paths[$index]}") || continue
-            if [ -z "${fastest[$index]}" ] || awk -v a="$seconds" -v b="${fastest[$index]}" 'BEGIN { exit !(a < b) }'; then
+            if [ -z "${fastest[$index]}" ] || less_than "$seconds" "${fastest[$index]}"; then
                 fastest[$index]=$seconds
             fi
         done
     done
     for index in "${!paths[@]}"; do
         [ -n "${fastest[$index]}" ] || continue
-        if [ -z "$best" ] || awk -v a="${fastest[$index]}" -v b="$best" 'BEGIN { exit !(a < b) }'; then
+        if [ -z "$best" ] || less_than "${fastest[$index]}" "$best"; then
             python=${paths[$index]} best=${fastest[$index]}
         fi
     done
-    [ -n "$python" ] || { echo "setup: Python 3.11 with its venv module is required (Debian: apt-get install python3.11-venv)" >&2; return 1; }
+    if [ -z "$python" ]; then
+        echo "setup: Python 3.11 with its venv module is required (Debian: apt-get install python3.11-venv)" >&2
+        return 1
+    fi
     echo "$python"
 }
 

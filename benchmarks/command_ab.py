@@ -76,8 +76,9 @@ def main() -> None:
     won = sum(difference < 0 for difference in differences)
     print(f"median: before {summary['before']:.2f} s, after {summary['after']:.2f} s; "
           f"median difference {statistics.median(differences):+.2f} s; after quicker in {won} of {args.pairs} pairs")
-    write_report(args.output, "command_ab", {"before": str(builds["before"]), "pythons": pythons, "options": options, "times_s": times,
-                                             "median_s": summary, "median_difference_s": statistics.median(differences),
+    write_report(args.output, "command_ab", {"before": str(builds["before"]), "pythons": pythons, "options": options,
+                                             "times_s": times, "median_s": summary,
+                                             "median_difference_s": statistics.median(differences),
                                              "pairs_won_by_after": won})
 
 

@@ -11,7 +11,7 @@ the kernels compiled by an untimed render first) and the sRGB RMSE of the clippe
 (``render.scenes.shape_scene``, maps repeated twice as a capture shows them) with
 ``SHAPE_SETTINGS``: ``results/preview_noise_shapes.json``. With ``--filters``, the capture's own
 sampler and count only (both previews' kinds), once with Mitsuba's Gaussian film filter and once
-box-filtered and developed by ``render.scenes.film_gaussian`` (its time included), against the
+box-filtered and developed by ``render.scenes.render_preview`` (its time included), against the
 same Gaussian-filtered reference: ``results/preview_noise_filters.json``.
 """
 
@@ -55,7 +55,7 @@ def main() -> None:
     from mideepbasis.evaluation.environment import to_display
     from mideepbasis.material import Material
     from mideepbasis.render.api import example_material_dir
-    from mideepbasis.render.scenes import film_gaussian, preview_scene, render, shape_scene
+    from mideepbasis.render.scenes import preview_scene, render, render_preview, shape_scene
 
     materials = {"procedural 7": generate(7, config=GeneratorConfig(size=256)).to_tensor(),
                  "procedural 11": generate(11, config=GeneratorConfig(size=256)).to_tensor(),
@@ -89,16 +89,11 @@ def main() -> None:
             if shape not in references:
                 references[shape] = to_display(render(make_scene(maps, args.reference_spp, "independent"), seed=7))
             scene = make_scene(maps, spp, sampler, rfilter)
-
-            def trace(scene=scene, rfilter=rfilter):
-                image = render(scene)
-                return film_gaussian(image) if rfilter == "box" else image
-
-            trace()
+            render_preview(scene)
             times = []
             for _ in range(args.repeats):
                 start = time.perf_counter()
-                image = trace()
+                image = render_preview(scene)
                 times.append(time.perf_counter() - start)
             rmse = float(np.sqrt(((to_display(image) - references[shape]) ** 2).mean()))
             rows.append({"material": name, "shape": shape, "sampler": sampler, "spp": spp, "rfilter": rfilter,

@@ -136,10 +136,11 @@ CAPTURE_PREVIEW_SPP = 25
 SHAPE_PREVIEW_SAMPLER = "multijitter"
 SHAPE_PREVIEW_SPP = 20
 
-#: The film filter of the previews (a capture's, and ``render --light env``'s): ``box`` (each sample in its own pixel), then Mitsuba's
-#: Gaussian applied to the image (``render.scenes.film_gaussian``) instead of splatted sample by
-#: sample into 16 pixels. On two AVX2 cores that saved 50 - 160 ms of each 256 px preview (the
-#: three of a capture: 0.3 s), at about the same noise: sRGB RMSE to a 1,024-spp Gaussian-filtered
+#: The film filter of the previews (a capture's, and ``render --light env``'s): ``box`` (each
+#: sample in its own pixel), then Mitsuba's Gaussian applied to the image (``render.scenes.
+#: render_preview``, ``film_gaussian``) instead of splatted sample by sample into 16 pixels. On
+#: two AVX2 cores that saved 50 - 160 ms of each 256 px preview (the three of a capture: 0.3 s),
+#: at about the same noise: sRGB RMSE to a 1,024-spp Gaussian-filtered
 #: render, plane / sphere / cloth, 0.0021 / 0.0025 / 0.0021, 0.0152 / 0.0108 / 0.0175 and 0.0111 /
 #: 0.0088 / 0.0108 on three materials against 0.0020 / 0.0026 / 0.0022, 0.0137 / 0.0099 / 0.0155
 #: and 0.0121 / 0.0085 / 0.0100 (benchmarks/preview_noise.py --filters). The second material, the

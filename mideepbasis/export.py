@@ -266,17 +266,17 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
             try:
                 scene = preview_scene(shown, environment=environment, spp=environment_spp,
                                       convention=material.convention, sampler=environment_sampler, rfilter=rfilter)
-                finished.put(("environment", render_preview(scene, rfilter, progress=progress)))
+                finished.put(("environment", render_preview(scene, progress=progress)))
                 for shape in ("sphere", "cloth") if shape_previews else ():
                     shape_view = shape_scene(shown, shape, environment, tiles=preview_tiles, spp=shape_spp,
                                              convention=material.convention, sampler=shape_sampler, rfilter=rfilter)
-                    finished.put((f"preview_{shape}", render_preview(shape_view, rfilter)))
+                    finished.put((f"preview_{shape}", render_preview(shape_view)))
                 if truth is not None:
                     truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
                                                 spp=environment_spp, convention=material.convention,
                                                 sampler=environment_sampler, rfilter=rfilter)
                     # The same seed as the capture's.
-                    finished.put(("environment_truth", render_preview(truth_scene, rfilter, progress=progress)))
+                    finished.put(("environment_truth", render_preview(truth_scene, progress=progress)))
             finally:
                 finished.put(None)  # also after a failure, which ``result()`` then raises
 

@@ -26,6 +26,17 @@ def downsample_maps(maps: torch.Tensor, size: int | tuple[int, int]) -> torch.Te
     return torch.cat([unit_vectors(small[:, constants.NORMAL], dim=1), small[:, constants.REFLECTANCE]], dim=1)
 
 
+def separable_filter(image: torch.Tensor, kernel: torch.Tensor, padding: str = "reflect") -> torch.Tensor:
+    """(B, C, H, W) convolved by ``kernel`` (2k + 1,) along the rows and then the columns, the
+    edges extended by torch's ``padding`` (``reflect``, ``replicate``, or ``constant``: zeros)."""
+    radius = kernel.shape[0] // 2
+    kernel = kernel.to(image).view(1, 1, 1, -1).expand(image.shape[1], 1, 1, -1)
+    padded = F.pad(image, (radius, radius, 0, 0), mode=padding)
+    image = F.conv2d(padded, kernel, groups=image.shape[1])
+    padded = F.pad(image, (0, 0, radius, radius), mode=padding)
+    return F.conv2d(padded, kernel.transpose(-1, -2), groups=image.shape[1])
+
+
 def gaussian_blur(image: torch.Tensor, sigma: float, padding: str = "reflect", radius: int | None = None) -> torch.Tensor:
     """Separable Gaussian blur of (B, C, H, W).
 
@@ -37,8 +48,4 @@ def gaussian_blur(image: torch.Tensor, sigma: float, padding: str = "reflect", r
     radius = max(1, int(3 * sigma)) if radius is None else radius
     offsets = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
     kernel = torch.exp(-(offsets**2) / (2 * sigma**2))
-    kernel = (kernel / kernel.sum()).view(1, 1, 1, -1).expand(image.shape[1], 1, 1, -1)
-    padded = F.pad(image, (radius, radius, 0, 0), mode=padding)
-    image = F.conv2d(padded, kernel, groups=image.shape[1])
-    padded = F.pad(image, (0, 0, radius, radius), mode=padding)
-    return F.conv2d(padded, kernel.transpose(-1, -2), groups=image.shape[1])
+    return separable_filter(image, kernel / kernel.sum(), padding)

@@ -67,7 +67,7 @@ def render_material(material, light: str = "flash", fov: float = constants.DEFAU
         scene = scenes.shape_scene(maps, shape=shape, environment=environment, tiles=tiles,
                                    spp=spp or constants.DEFAULT_SPP, resolution=resolution or constants.PREVIEW_RESOLUTION,
                                    convention=convention, rfilter=constants.PREVIEW_FILM_FILTER)
-        return scenes.render_preview(scene, constants.PREVIEW_FILM_FILTER, seed=seed, progress=progress)
+        return scenes.render_preview(scene, seed=seed, progress=progress)
     if shape != "plane":
         raise InputError(f"--shape {shape} needs --light env (the flash capture sees the sample plane)")
     if light != "flash":
