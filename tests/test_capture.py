@@ -373,6 +373,30 @@ def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
         assert torch.equal(bases[..., :3], predicted[..., :3])
 
 
+def test_the_refinement_keeping_the_normals_renders_them_blended_once_with_the_same_result():
+    """Where the normals stay, each step blends and differentiates the seven other channels alone,
+    the normal blended before the loop: the same bases and losses as differentiating all ten."""
+    from mideepbasis.render.fit import fit_global_bases
+
+    rng = np.random.default_rng(3)
+    bases, size = 3, 16
+    weights = rng.random((bases, size, size)).astype(np.float32)
+    weights /= weights.sum(axis=0, keepdims=True)
+    deviations = (0.2 * rng.standard_normal((bases, 10, size, size))).astype(np.float32)
+    predicted = rng.uniform(-0.6, 0.6, (bases, 10)).astype(np.float32)
+    predicted[:, 2] = 0.9  # normals toward the camera
+    target = rng.uniform(0.05, 0.6, (3, size, size)).astype(np.float32)
+    movable = np.ones(10, dtype=np.float32)
+    movable[:3] = 0.0
+    arguments = (weights, deviations, predicted, movable, target, np.array([0.2, -0.1, 2.0]), 3.0, "physical", 1.0,
+                 40, 0.02, 0.1)
+    quick, quick_losses = fit_global_bases(*arguments)
+    reference, reference_losses = fit_global_bases(*arguments, every_channel=True)
+    np.testing.assert_allclose(quick, reference, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(quick_losses, reference_losses, atol=1e-7, rtol=0)
+    assert np.array_equal(quick[:, :3], predicted[:, :3]) and np.abs(quick - predicted).max() > 0.05
+
+
 def test_the_network_runs_at_its_training_resolution_and_the_prediction_is_upsampled(tmp_path):
     torch.manual_seed(0)
     path = save_checkpoint(tmp_path / "m.safetensors", DeepBasisNet(preset("tiny")).eval(),

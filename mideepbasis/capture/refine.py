@@ -5,8 +5,9 @@ blended material (rendered through the plugin); the weights and local deviations
 runs on a downsampled copy: the global bases are a few numbers, and the photo's large-scale
 appearance determines them. With the Mitsuba backend the loop runs on the drjit side, each step
 one frozen drjit function (``render.fit``: 0.3 s for the default 125 steps where the torch loop,
-crossing the bridge at every step, took 0.8 - 0.9 s); with the torch backend, in torch
-(``_fit_torch``, also the reference of the drjit loop).
+crossing the bridge at every step, took 0.8 - 0.9 s; with the normals kept, as by default, the
+steps blend and differentiate the other seven channels alone: 0.44 -> 0.28 s on two AVX2 cores);
+with the torch backend, in torch (``_fit_torch``, also the reference of the drjit loop).
 
 Shapes: photo (3, H, W) linear; light (3,) [patch half-widths]; global bases (1, N, 10) signed space.
 """

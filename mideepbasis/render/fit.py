@@ -19,6 +19,11 @@ choices keep a step to a few kernels:
   sums; autodiff through a gather of the N x 10 values themselves would scatter every pixel's
   share into the same few addresses.
 
+When the normals stay as predicted (the default), their blend is the same at every step: it is
+made once, before the loop, and a step blends, differentiates and renders the seven other channels
+alone (the torch loop does the same). The plugin's gradient with respect to the normal, most of a
+step's arithmetic, is then not computed only to be masked out.
+
 Data cross from torch here as numpy arrays, at the start and the end of the loop (the bridge is
 the crossing for renders inside torch's autograd).
 """
@@ -50,7 +55,8 @@ class FitInputs:
     """N arrays of P: the blending weights (sum 1 per pixel)."""
 
     deviations: mi.Float
-    """K * P: the local deviations, value k of pixel p at k * P + p (signed space)."""
+    """K * P: the local deviations, value k of pixel p at k * P + p (signed space); where the
+    normals stay, those of the seven ``REFLECTANCE_CHANNELS`` of every basis alone (7 N * P)."""
 
     predicted: mi.Float
     """K: the network's global bases (signed space)."""
@@ -73,50 +79,104 @@ class FitInputs:
     prior: mi.Float
     """1: the weight of the mean L1 pull of the bases toward the predicted ones."""
 
+    normal: mi.Vector3f
+    """P: the blended unit normal of the predicted bases where the normals stay (``fixed_normal``);
+    a single unused zero where they move."""
+
     DRJIT_STRUCT = {"weights": list, "deviations": mi.Float, "predicted": mi.Float, "movable": mi.Float,
                     "target": mi.Color3f, "light": mi.Point3f, "intensity": mi.Float, "lr": mi.Float,
-                    "prior": mi.Float}
+                    "prior": mi.Float, "normal": mi.Vector3f}
 
 
-def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int):
-    """The blended maps of global bases ``current`` (K) plus the deviations, as ``to_maps`` of
-    ``compose_bases``: (unit normal, diffuse, roughness, specular) per pixel, and the packed
-    per-pixel copies of ``current`` whose gradients are the bases' (``_step``)."""
+#: The signed-space channels the refinement blends at every step when the normals stay.
+REFLECTANCE_CHANNELS = range(3, constants.BASIS_CHANNELS)
+
+
+def _blended_normal(values: mi.Float, weights: list, bases: int, pixels: int) -> mi.Vector3f:
+    """The blended unit normal per pixel (``to_maps`` of ``compose_bases``) of the per-pixel basis
+    values ``values`` (K * P, value k of pixel p at k * P + p)."""
     channels = constants.BASIS_CHANNELS
-    packed = dr.gather(mi.Float, current, dr.arange(mi.UInt32, bases * channels * pixels) // pixels)
-    dr.enable_grad(packed)
-    values = packed + data.deviations
     index = dr.arange(mi.UInt32, pixels)
-    blended = [None] * channels
+    blended = [None] * 3
     for basis in range(bases):
-        value = [dr.gather(mi.Float, values, (basis * channels + c) * pixels + index) for c in range(channels)]
-        normal = mi.Vector3f(value[0], value[1], value[2])
+        normal = mi.Vector3f(*[dr.gather(mi.Float, values, (basis * channels + c) * pixels + index) for c in range(3)])
         normal = normal / (dr.norm(normal) + 1e-12)  # normalize_basis_normals
-        value[0:3] = [normal.x, normal.y, normal.z]
-        weight = data.weights[basis]
-        for c in range(channels):
-            term = weight * dr.clip(value[c], -1.0, 1.0)
+        for c in range(3):
+            term = weights[basis] * dr.clip(normal[c], -1.0, 1.0)
             blended[c] = term if blended[c] is None else blended[c] + term
     normal = mi.Vector3f(blended[0], blended[1], dr.maximum(blended[2], 0.0))
-    normal = normal / dr.sqrt(dr.maximum(dr.squared_norm(normal), 1e-12))
-    rest = [dr.clip(value * 0.5 + 0.5, 0.0, 1.0) for value in blended[3:]]
+    return normal / dr.sqrt(dr.maximum(dr.squared_norm(normal), 1e-12))
+
+
+def fixed_normal(data: FitInputs, bases: int, pixels: int) -> mi.Vector3f:
+    """The blended unit normal of the predicted bases, evaluated: what every step of a refinement
+    that keeps the normals renders."""
+    channels = constants.BASIS_CHANNELS
+    values = dr.gather(mi.Float, data.predicted, dr.arange(mi.UInt32, bases * channels * pixels) // pixels)
+    normal = _blended_normal(values + data.deviations, data.weights, bases, pixels)
+    dr.eval(normal)
+    return normal
+
+
+def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int, normals_move: bool):
+    """The blended maps of global bases ``current`` (K) plus the deviations, as ``to_maps`` of
+    ``compose_bases``: (unit normal, diffuse, roughness, specular) per pixel, and the packed
+    per-pixel copies of the blended channels of ``current`` whose gradients are the bases'
+    (``_step``): all ten channels where ``normals_move``, else the seven of
+    ``REFLECTANCE_CHANNELS``, with ``data.normal`` as the normal."""
+    channels = constants.BASIS_CHANNELS
+    blended_channels = range(channels) if normals_move else REFLECTANCE_CHANNELS
+    count = len(blended_channels)
+    if normals_move:
+        packed = dr.gather(mi.Float, current, dr.arange(mi.UInt32, bases * channels * pixels) // pixels)
+        dr.enable_grad(packed)
+        values = packed + data.deviations
+        normal = _blended_normal(values, data.weights, bases, pixels)
+    else:
+        # Packed value j: channel 3 + (j // P) % 7 of basis j // (7 P), pixel j % P.
+        index = dr.arange(mi.UInt32, bases * count * pixels)
+        slot = index // pixels
+        source = (slot // count) * channels + blended_channels.start + slot % count
+        packed = dr.gather(mi.Float, current, source)
+        dr.enable_grad(packed)
+        values = packed + data.deviations  # the seven channels' deviations alone, in the same order
+        normal = data.normal
+    index = dr.arange(mi.UInt32, pixels)
+    rest = [None] * len(REFLECTANCE_CHANNELS)
+    for basis in range(bases):
+        weight = data.weights[basis]
+        for position, c in enumerate(REFLECTANCE_CHANNELS):
+            value = dr.gather(mi.Float, values, (basis * count + c - blended_channels.start) * pixels + index)
+            term = weight * dr.clip(value, -1.0, 1.0)
+            rest[position] = term if rest[position] is None else rest[position] + term
+    rest = [dr.clip(value * 0.5 + 0.5, 0.0, 1.0) for value in rest]
     return (normal, mi.Color3f(rest[0], rest[1], rest[2]), rest[3], mi.Color3f(rest[4], rest[5], rest[6])), packed
 
 
 def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step: mi.Float, data: FitInputs,
-          bases: int, size: int, convention: str, extent: float):
-    """One refinement step: (the bases after it, Adam's moments, the loss before it)."""
+          bases: int, size: int, convention: str, extent: float, normals_move: bool = True):
+    """One refinement step: (the bases after it, Adam's moments, the loss before it). Where
+    ``normals_move`` is False the step renders ``data.normal`` and differentiates the other seven
+    channels alone (the normals' gradient would be masked out)."""
     pixels = size * size
-    count = bases * constants.BASIS_CHANNELS
+    channels = constants.BASIS_CHANNELS
+    count = bases * channels
     current = data.predicted + (free - data.predicted) * data.movable
-    maps, packed = _blend(current, data, bases, pixels)
+    maps, packed = _blend(current, data, bases, pixels, normals_move)
     radiance = flash_renderer(convention).render_maps(*maps, data.light, size, size, data.intensity, extent)
     loss = dr.sum(dr.abs(dr.clip(radiance, 0.0, 1.0) - data.target), axis=None) / (3 * pixels)
     dr.backward(loss)
     difference = current - data.predicted
     # d/d current of prior * mean |current - predicted| (torch's |x| has gradient 0 at 0)
     prior_gradient = data.prior / count * dr.select(difference > 0, 1.0, dr.select(difference < 0, -1.0, 0.0))
-    gradient = (dr.block_sum(dr.grad(packed), pixels) + prior_gradient) * data.movable
+    sums = dr.block_sum(dr.grad(packed), pixels)
+    if not normals_move:  # the seven channels' sums of each basis, in their places among its ten
+        value = dr.arange(mi.UInt32, count)
+        channel = value % channels
+        blended = channel >= REFLECTANCE_CHANNELS.start
+        sums = dr.select(blended, dr.gather(mi.Float, sums, (value // channels) * len(REFLECTANCE_CHANNELS)
+                                            + channel - REFLECTANCE_CHANNELS.start, blended), 0.0)
+    gradient = (sums + prior_gradient) * data.movable
     prior_term = data.prior * dr.sum(dr.abs(difference)) / count
     beta1, beta2 = ADAM_BETAS
     first_moment = dr.lerp(first_moment, gradient, 1 - beta1)
@@ -134,7 +194,8 @@ _frozen_step = dr.freeze(_step)
 
 def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.ndarray, movable: np.ndarray,
                      target: np.ndarray, light: np.ndarray, intensity: float, convention: str, extent: float,
-                     steps: int, lr: float, prior: float, progress=None) -> tuple[np.ndarray, list[float]]:
+                     steps: int, lr: float, prior: float, progress=None,
+                     every_channel: bool = False) -> tuple[np.ndarray, list[float]]:
     """Adam on the global bases so the plugin's render of the blend matches the photo.
 
     Args:
@@ -142,7 +203,9 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
             network's global bases; movable: (10,) 1 where a channel may move; target: (3, r, r)
             linear; light: (3,) [patch half-widths]; intensity: the flash's; convention, extent:
             the shading convention and the sample's half-width [patch half-widths]; steps, lr,
-            prior: as ``RefineConfig``; progress: wraps the range of steps (e.g. ``tqdm``).
+            prior: as ``RefineConfig``; progress: wraps the range of steps (e.g. ``tqdm``);
+            every_channel: blend and differentiate all ten channels at every step even where the
+            normals stay (the quicker path's reference in the tests).
 
     Returns:
         ((N, 10) the refined bases, the loss at every step).
@@ -155,7 +218,12 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      predicted=as_float(predicted), movable=as_float(np.tile(movable, bases)),
                      target=mi.Color3f(*[as_float(channel) for channel in target]),
                      light=mi.Point3f(*[float(x) for x in np.asarray(light).reshape(3)]),
-                     intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), prior=mi.Float(float(prior)))
+                     intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), prior=mi.Float(float(prior)),
+                     normal=dr.zeros(mi.Vector3f, 1))
+    normals_move = every_channel or bool(np.any(np.asarray(movable)[:3] != 0))
+    if not normals_move:
+        data.normal = fixed_normal(data, bases, size * size)
+        data.deviations = as_float(np.asarray(deviations)[:, REFLECTANCE_CHANNELS.start:])
     free = mi.Float(data.predicted)
     first_moment, second_moment = dr.zeros(mi.Float, count), dr.zeros(mi.Float, count)
     # Evaluated inputs (not literals): every call then matches the one recording.
@@ -163,7 +231,8 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     losses = []
     for step in (progress or (lambda steps: steps))(range(1, steps + 1)):
         free, first_moment, second_moment, loss = _frozen_step(free, first_moment, second_moment, mi.Float(step),
-                                                                data, bases, size, convention, float(extent))
+                                                                data, bases, size, convention, float(extent),
+                                                                normals_move)
         losses.append(loss)
     refined = np.array(data.predicted + (free - data.predicted) * data.movable, dtype=np.float32).reshape(bases, constants.BASIS_CHANNELS)
     return refined, [float(loss[0]) for loss in losses]
