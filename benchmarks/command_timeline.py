@@ -9,7 +9,8 @@ bundled photo as the console command does (torch started without its tracing mod
 Python integrators left out, ``render.SKIP_PYTHON_INTEGRATORS``; the start-up's objects frozen,
 ``startup``). The marks are seconds since the process started its first import. Printed per
 run: the time of each part (the package's import, the rest of start-up, each stage, the
-previews' renders and the scenes between them), and ``results/command_timeline.json``. Options
+previews' renders and the scenes between them), how many of the cores each stage kept busy (its
+CPU time over its wall time: 2 is both), and ``results/command_timeline.json``. Options
 after ``--`` go to ``capture`` (``-- --resolution 1024``).
 """
 
@@ -52,7 +53,8 @@ def child(output: str, options: list[str]) -> None:
     marks = []
 
     def mark(event: str, name: str) -> None:
-        marks.append((time.perf_counter() - start, event, name))
+        times = os.times()  # the process's CPU time, all its threads
+        marks.append((time.perf_counter() - start, event, name, times.user + times.system))
 
     import mideepbasis  # noqa: F401  (torch's import in it, as in the console command)
 
@@ -93,7 +95,7 @@ def parts(marks: list) -> dict[str, float]:
     last = {}
     renders = 0.0
     opened = None
-    for seconds, event, name in marks:
+    for seconds, event, name, *_ in marks:
         if event == "start":
             first.setdefault(name, seconds)
             opened = seconds if name == "render" else opened
@@ -111,6 +113,22 @@ def parts(marks: list) -> dict[str, float]:
         result["write: after the last render"] = last["write"] - last["render"]
     result["total"] = last["command"]
     return {name: round(value, 3) for name, value in result.items()}
+
+
+def cores_busy(marks: list) -> dict[str, float]:
+    """Each stage's CPU time over its wall time [cores]: how much of the two cores it keeps busy
+    (the package's import from the process's start)."""
+    opened = {}
+    result = {IMPORT: marks[0][3] / max(marks[0][0], 1e-9)}
+    for seconds, event, name, cpu in marks:
+        if event == "start":
+            opened.setdefault(name, (seconds, cpu))
+        elif name in opened and name not in ("render",):
+            wall0, cpu0 = opened[name]
+            result[name] = (cpu - cpu0) / max(seconds - wall0, 1e-9)
+    last = marks[-1]
+    result["total"] = last[3] / max(last[0], 1e-9)
+    return {name: round(value, 2) for name, value in result.items()}
 
 
 def main() -> None:
@@ -134,8 +152,9 @@ def main() -> None:
             run = json.loads(marks_file.read_text())
         if run["status"] != 0:
             raise SystemExit(f"the capture command failed (status {run['status']})")
-        runs.append({"parts_s": parts(run["marks"]), "marks": run["marks"]})
+        runs.append({"parts_s": parts(run["marks"]), "cores_busy": cores_busy(run["marks"]), "marks": run["marks"]})
         print(f"run {index + 1}: " + ", ".join(f"{name} {value:.2f}" for name, value in runs[-1]["parts_s"].items()))
+        print("  cores busy: " + ", ".join(f"{name} {value:.2f}" for name, value in runs[-1]["cores_busy"].items()))
     write_report(args.output, "command_timeline", {"options": options, "runs": runs})
 
 

@@ -12,7 +12,10 @@ the kernels compiled by an untimed render first) and the sRGB RMSE of the clippe
 ``SHAPE_SETTINGS``: ``results/preview_noise_shapes.json``. With ``--filters``, the capture's own
 sampler and count only (both previews' kinds), once with Mitsuba's Gaussian film filter and once
 box-filtered and developed by ``render.scenes.render_preview`` (its time included), against the
-same Gaussian-filtered reference: ``results/preview_noise_filters.json``.
+same Gaussian-filtered reference: ``results/preview_noise_filters.json``. With ``--settings
+SAMPLER:SPP ...``, those samplers and counts instead of the lists below, box-filtered and developed
+as a capture's previews are. The renders of a material are timed round by round over its
+settings, so that the machine's drift falls on all of them alike.
 """
 
 from __future__ import annotations
@@ -42,6 +45,9 @@ def main() -> None:
     parser.add_argument("--shapes", action="store_true", help="the sphere and cloth previews instead of the plane")
     parser.add_argument("--filters", action="store_true",
                         help="the capture's settings with the Gaussian film filter and with box + film_gaussian")
+    parser.add_argument("--settings", nargs="+", default=None, metavar="SAMPLER:SPP",
+                        help="these samplers and counts instead of SETTINGS (or SHAPE_SETTINGS), box-filtered "
+                             "and developed as a capture's previews are (render.scenes.render_preview)")
     parser.add_argument("-o", "--output", type=Path, default=None,
                         help="default results/preview_noise.json (--shapes: _shapes, --filters: _filters)")
     args = parser.parse_args()
@@ -76,29 +82,33 @@ def main() -> None:
         makers = {"plane": plane, "sphere": shape_maker("sphere"), "cloth": shape_maker("cloth")}
         cases = [(shape, makers[shape], *capture_settings[shape], rfilter)
                  for shape in makers for rfilter in ("gaussian", "box")]
-    elif args.shapes:
-        cases = [(shape, shape_maker(shape), sampler, spp, "gaussian")
-                 for shape in ("sphere", "cloth") for sampler, spp in SHAPE_SETTINGS]
     else:
-        cases = [("plane", plane, sampler, spp, "gaussian") for sampler, spp in SETTINGS]
+        settings = SHAPE_SETTINGS if args.shapes else SETTINGS
+        rfilter = "gaussian"
+        if args.settings:
+            settings = [(text.partition(":")[0], int(text.partition(":")[2])) for text in args.settings]
+            rfilter = constants.PREVIEW_FILM_FILTER
+        shapes = {"sphere": shape_maker("sphere"), "cloth": shape_maker("cloth")} if args.shapes else {"plane": plane}
+        cases = [(shape, make, sampler, spp, rfilter) for shape, make in shapes.items() for sampler, spp in settings]
 
     rows = []
     for name, maps in materials.items():
-        references = {}
-        for shape, make_scene, sampler, spp, rfilter in cases:
-            if shape not in references:
-                references[shape] = to_display(render(make_scene(maps, args.reference_spp, "independent"), seed=7))
-            scene = make_scene(maps, spp, sampler, rfilter)
-            render_preview(scene)
-            times = []
-            for _ in range(args.repeats):
+        references = {shape: to_display(render(make_scene(maps, args.reference_spp, "independent"), seed=7))
+                      for shape, make_scene, *_ in cases}
+        scenes = [make_scene(maps, spp, sampler, rfilter) for _, make_scene, sampler, spp, rfilter in cases]
+        images = [render_preview(scene) for scene in scenes]  # the kernels compiled, untimed
+        # Round by round over the cases, so that the machine's drift (a fifth within minutes) falls on all alike.
+        times = [[] for _ in cases]
+        for _ in range(args.repeats):
+            for index, scene in enumerate(scenes):
                 start = time.perf_counter()
-                image = render_preview(scene)
-                times.append(time.perf_counter() - start)
+                images[index] = render_preview(scene)
+                times[index].append(time.perf_counter() - start)
+        for (shape, _, sampler, spp, rfilter), image, seconds in zip(cases, images, times, strict=True):
             rmse = float(np.sqrt(((to_display(image) - references[shape]) ** 2).mean()))
             rows.append({"material": name, "shape": shape, "sampler": sampler, "spp": spp, "rfilter": rfilter,
-                         "seconds": round(min(times), 3), "srgb_rmse": round(rmse, 5)})
-            print(f"{name:16s} {shape:6s} {sampler:12s} {spp:3d} spp {rfilter:8s}: {1000 * min(times):6.0f} ms, "
+                         "seconds": round(min(seconds), 3), "srgb_rmse": round(rmse, 5)})
+            print(f"{name:16s} {shape:6s} {sampler:12s} {spp:3d} spp {rfilter:8s}: {1000 * min(seconds):6.0f} ms, "
                   f"sRGB RMSE {rmse:.4f}", flush=True)
     write_report(output, "preview_noise", {"reference_spp": args.reference_spp, "rows": rows})
 
