@@ -10,7 +10,8 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from mideepbasis import geometry
-from mideepbasis.model.checkpoint import CheckpointError, load_model, read_checkpoint, save_checkpoint
+from mideepbasis.model.checkpoint import (CheckpointError, load_model, parameters_left_uninitialised, read_checkpoint,
+                                          save_checkpoint)
 from mideepbasis.model.network import DeepBasisNet, preset
 
 
@@ -33,6 +34,28 @@ def test_round_trip_gives_the_same_network(saved):
     document, _ = read_checkpoint(path)
     assert document["convention"] == "physical" and document["training"]["data"] == ["procedural"]
     assert document["network"]["num_bases"] == 4
+
+
+def test_loading_skips_the_random_initialisation_and_leaves_layers_built_later_initialised(saved):
+    model, path = saved
+    loaded = load_model(path)
+    expected = model.state_dict()
+    assert all(torch.equal(value, expected[name]) for name, value in loaded.state_dict().items())
+    # Built inside: the parameters are not drawn (the generator does not move); after: as before.
+    torch.manual_seed(11)
+    with parameters_left_uninitialised():
+        torch.nn.Conv2d(4, 8, 3)
+        torch.nn.Linear(5, 6)
+    drawn_after = torch.rand(3)
+    torch.manual_seed(11)
+    assert torch.equal(torch.rand(3), drawn_after)
+    torch.manual_seed(11)
+    reference = torch.nn.Conv2d(4, 8, 3).weight
+    torch.manual_seed(11)
+    with pytest.raises(RuntimeError), parameters_left_uninitialised():
+        raise RuntimeError("restored on the way out too")
+    assert torch.equal(torch.nn.Conv2d(4, 8, 3).weight, reference)
+    assert "reset_parameters" not in torch.nn.Conv2d.__dict__  # still _ConvNd's
 
 
 def rewrite(path, target, edit_document=None, drop=None):
