@@ -673,14 +673,13 @@ class DeepBasisNet(nn.Module):
         if "signed" in mean:  # a direct network: its maps
             return DeepBasisOutput(maps=to_maps(mean["signed"]), signed=mean["signed"])
         reflectance = mean["global_bases"][:, :, constants.REFLECTANCE]
-        if "bases" not in mean:  # no local unit: the global normals are all there is, turned back
+        if "basis_normals" not in mean:  # no local unit: the global normals are all there is, turned back
             global_bases = torch.cat([mean["global_bases"][:, :, constants.NORMAL], reflectance], dim=2)
             return DeepBasisOutput.from_bases(mean["weights"], normalize_basis_normals(global_bases, dim=2))
         # The normals of the photo as it is; the bases' whole normals averaged, kept as deviations from them.
         global_bases = torch.cat([identity_normals, reflectance], dim=2)
-        bases = mean["bases"]
-        deviations = torch.cat([bases[:, :, constants.NORMAL] - identity_normals[..., None, None],
-                                bases[:, :, constants.REFLECTANCE]], dim=2)
+        deviations = torch.cat([mean["basis_normals"] - identity_normals[..., None, None],
+                                mean["reflectance_deviations"]], dim=2)
         if "slope" in mean:
             deviations = add_slope(global_bases, deviations, mean["slope"], self.config.normal_slope_scaled)
         return DeepBasisOutput.from_bases(mean["weights"], global_bases, deviations, keep_bases=False,
@@ -708,17 +707,20 @@ class DeepBasisNet(nn.Module):
         """What ``symmetrised`` averages of the network's answer to (moved) inputs, by name, each
         with how it moves (``model.symmetry._MOVES``): the signed maps of a direct network; else
         the weights and the global bases, and with a local unit each basis's normal sum (global
-        plus deviation) and reflectance deviations, the normal unit's slope and the error map."""
+        plus deviation, (B, N, 3, H, W)) and reflectance deviations ((B, N, 7, H, W)), the normal
+        unit's slope and the error map."""
         stage = self.basis_stage(inputs, lights, fov)
         if isinstance(stage, DeepBasisOutput):
             if stage.weights is None:
                 return {"signed": (stage.signed_maps, "field")}
             return {"weights": (stage.weights, "image"), "global_bases": (stage.global_bases, "bases")}
         deviations = self.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
-        # Global plus deviation as they are (not made unit): the slope is added to that sum, as in ``forward``.
-        normals = (stage.global_bases[..., None, None] + deviations)[:, :, constants.NORMAL]
+        # Global plus deviation as they are (not made unit): the slope is added to that sum, as in
+        # ``forward``. The normals and the reflectance apart: only the normals' x and y turn.
+        normals = stage.global_bases[:, :, constants.NORMAL, None, None] + deviations[:, :, constants.NORMAL]
         parts = {"weights": (stage.weights, "image"), "global_bases": (stage.global_bases, "bases"),
-                 "bases": (torch.cat([normals, deviations[:, :, constants.REFLECTANCE]], dim=2), "basis_field"),
+                 "basis_normals": (normals, "basis_field"),
+                 "reflectance_deviations": (deviations[:, :, constants.REFLECTANCE], "image"),
                  "error": (stage.error, "image")}
         if with_normal_unit and hasattr(self, "normal_unit"):
             parts["slope"] = (self.normal_slope(stage, deviations, lights, fov), "field")

@@ -152,7 +152,7 @@ def symmetry_group(count: int, height: int, width: int) -> tuple[Symmetry, ...]:
 
 
 #: How each kind of tensor moves: ``image`` (..., H, W) pixels alone; ``field`` (B, 2+, H, W) pixels
-#: and the x and y of dim 1; ``basis_field`` (B, N, 10, H, W) pixels and the normal's x and y of
+#: and the x and y of dim 1; ``basis_field`` (B, N, 3+, H, W) pixels and the normal's x and y of
 #: dim 2; ``bases`` (B, N, 10) the normal's x and y of dim 2.
 _MOVES = {
     "image": lambda s, value: s.image(value, inverse=True),
