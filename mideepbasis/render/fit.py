@@ -171,10 +171,10 @@ def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step:
     prior_gradient = data.prior / count * dr.select(difference > 0, 1.0, dr.select(difference < 0, -1.0, 0.0))
     sums = dr.block_sum(dr.grad(packed), pixels)
     if not normals_move:  # the seven channels' sums of each basis, in their places among its ten
-        value = dr.arange(mi.UInt32, count)
-        channel = value % channels
+        slot = dr.arange(mi.UInt32, count)
+        channel = slot % channels
         blended = channel >= REFLECTANCE_CHANNELS.start
-        sums = dr.select(blended, dr.gather(mi.Float, sums, (value // channels) * len(REFLECTANCE_CHANNELS)
+        sums = dr.select(blended, dr.gather(mi.Float, sums, (slot // channels) * len(REFLECTANCE_CHANNELS)
                                             + channel - REFLECTANCE_CHANNELS.start, blended), 0.0)
     gradient = (sums + prior_gradient) * data.movable
     prior_term = data.prior * dr.sum(dr.abs(difference)) / count
