@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from mideepbasis.resampling import gaussian_blur
+import torch.nn.functional as F
+
+from mideepbasis.resampling import downsample, gaussian_blur
 
 
 def _extended_index(index: np.ndarray, size: int, padding: str) -> np.ndarray:
@@ -54,3 +56,24 @@ def test_default_radius_is_three_sigma_truncated():
     for sigma, reach in ((1.5, 4), (0.2, 1), (2.0, 6)):
         row = gaussian_blur(delta, sigma)[0, 0, 15]
         assert (row > 0).nonzero().flatten().tolist() == list(range(15 - reach, 16 + reach))
+
+
+@pytest.mark.parametrize("shape, size", [((1, 3, 256, 256), 128), ((2, 10, 1024, 1024), 256), ((1, 3, 512, 384), (64, 96)),
+                                         ((1, 10, 2048, 1024), 256), ((2, 4, 3, 96, 160), (24, 20))])
+def test_downsampling_by_whole_factors_is_the_block_mean_and_torchs_area_resampling_to_the_bit(shape, size):
+    torch.manual_seed(1)
+    image = torch.rand(shape) * 3 - 1
+    height, width = (size, size) if isinstance(size, int) else size
+    small = downsample(image, size)
+    flat = image.reshape(-1, *shape[-3:])
+    area = F.interpolate(flat, size=(height, width), mode="area").reshape(*shape[:-2], height, width)
+    assert torch.equal(small, area)
+    blocks = image.reshape(*shape[:-2], height, shape[-2] // height, width, shape[-1] // width).mean(dim=(-3, -1))
+    torch.testing.assert_close(small, blocks, atol=1e-6, rtol=0)
+    if image.ndim == 4:
+        assert torch.equal(downsample(image.contiguous(memory_format=torch.channels_last), size), area)
+
+
+def test_downsampling_by_other_factors_is_torchs_area_resampling():
+    image = torch.rand(1, 3, 100, 75)
+    torch.testing.assert_close(downsample(image, 64), F.interpolate(image, size=(64, 64), mode="area"), atol=0, rtol=0)
