@@ -390,7 +390,15 @@ def test_the_refinement_keeping_the_normals_renders_them_blended_once_with_the_s
     movable[:3] = 0.0
     arguments = (weights, deviations, predicted, movable, target, np.array([0.2, -0.1, 2.0]), 3.0, "physical", 1.0,
                  40, 0.02, 0.1)
-    quick, quick_losses = fit_global_bases(*arguments)
+    seen = []
+
+    def progress(steps):  # a bar's view of the loop: the steps, waited for every PROGRESS_SYNC_STEPS
+        for step in steps:
+            seen.append(step)
+            yield step
+
+    quick, quick_losses = fit_global_bases(*arguments, progress=progress)
+    assert seen == list(range(1, 41))
     reference, reference_losses = fit_global_bases(*arguments, every_channel=True)
     np.testing.assert_allclose(quick, reference, atol=1e-6, rtol=0)
     np.testing.assert_allclose(quick_losses, reference_losses, atol=1e-7, rtol=0)

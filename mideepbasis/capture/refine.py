@@ -155,7 +155,7 @@ def _fit_drjit(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
     from .. import geometry
     from ..render.fit import fit_global_bases
 
-    bar = (lambda steps: tqdm(steps, desc="refining", unit="step", disable=not progress))
+    bar = (lambda steps: tqdm(steps, desc="refining", unit="step")) if progress else None
     refined, losses = fit_global_bases(weights[0].numpy(), deviations[0].numpy(), predicted[0].numpy(), movable.numpy(),
                                        target[0].numpy(), light.numpy(), geometry.flash_intensity(fov, convention),
                                        convention, extent, config.steps, config.lr, config.prior, progress=bar)
