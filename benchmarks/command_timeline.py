@@ -123,7 +123,7 @@ def cores_busy(marks: list) -> dict[str, float]:
     for seconds, event, name, cpu in marks:
         if event == "start":
             opened.setdefault(name, (seconds, cpu))
-        elif name in opened and name not in ("render",):
+        elif name in opened and name != "render":  # the stages, each marked once (three renders)
             wall0, cpu0 = opened[name]
             result[name] = (cpu - cpu0) / max(seconds - wall0, 1e-9)
     last = marks[-1]

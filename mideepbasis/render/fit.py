@@ -89,7 +89,7 @@ class FitInputs:
 
 
 #: The signed-space channels the refinement blends at every step when the normals stay.
-REFLECTANCE_CHANNELS = range(3, constants.BASIS_CHANNELS)
+REFLECTANCE_CHANNELS = range(constants.BASIS_CHANNELS)[constants.REFLECTANCE]
 
 
 def _blended_normal(values: mi.Float, weights: list, bases: int, pixels: int) -> mi.Vector3f:
@@ -127,20 +127,14 @@ def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int, normals_
     channels = constants.BASIS_CHANNELS
     blended_channels = range(channels) if normals_move else REFLECTANCE_CHANNELS
     count = len(blended_channels)
-    if normals_move:
-        packed = dr.gather(mi.Float, current, dr.arange(mi.UInt32, bases * channels * pixels) // pixels)
-        dr.enable_grad(packed)
-        values = packed + data.deviations
-        normal = _blended_normal(values, data.weights, bases, pixels)
-    else:
-        # Packed value j: channel 3 + (j // P) % 7 of basis j // (7 P), pixel j % P.
-        index = dr.arange(mi.UInt32, bases * count * pixels)
-        slot = index // pixels
-        source = (slot // count) * channels + blended_channels.start + slot % count
-        packed = dr.gather(mi.Float, current, source)
-        dr.enable_grad(packed)
-        values = packed + data.deviations  # the seven channels' deviations alone, in the same order
-        normal = data.normal
+    # Packed value j: channel first + (j // P) % count of basis j // (count P), pixel j % P; with
+    # all ten channels, value j // P of ``current`` itself.
+    slot = dr.arange(mi.UInt32, bases * count * pixels) // pixels
+    source = slot if normals_move else (slot // count) * channels + blended_channels.start + slot % count
+    packed = dr.gather(mi.Float, current, source)
+    dr.enable_grad(packed)
+    values = packed + data.deviations  # the blended channels' deviations, in the same order
+    normal = _blended_normal(values, data.weights, bases, pixels) if normals_move else data.normal
     index = dr.arange(mi.UInt32, pixels)
     rest = [None] * len(REFLECTANCE_CHANNELS)
     for basis in range(bases):
@@ -227,7 +221,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      light=mi.Point3f(*[float(x) for x in np.asarray(light).reshape(3)]),
                      intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), prior=mi.Float(float(prior)),
                      normal=dr.zeros(mi.Vector3f, 1))
-    normals_move = every_channel or bool(np.any(np.asarray(movable)[:3] != 0))
+    normals_move = every_channel or bool(np.any(np.asarray(movable)[constants.NORMAL] != 0))
     if not normals_move:
         data.normal = fixed_normal(data, bases, size * size)
         data.deviations = as_float(np.asarray(deviations)[:, REFLECTANCE_CHANNELS.start:])
