@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from . import constants, geometry
 from .configs import differences, positive_int
 from .data.procedural import GeneratorConfig
-from .data.synth import SynthesisConfig, TrainingBatch, Variation, synthesize
+from .data.synth import PHONE_LEVERS, SynthesisConfig, TrainingBatch, Variation, synthesize
 from .errors import InputError
 from .model.checkpoint import read_checkpoint, save_checkpoint
 from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, octave_relief_inputs, relief_channels
@@ -242,6 +242,8 @@ class TrainConfig:
             raise ValueError(f"unknown network parts {unknown} to train; expected some of {list(TRAINABLE_PARTS)}")
         if self.normal_pool < 0:
             raise ValueError(f"normal_pool {self.normal_pool} must be 0 (off) or a number of materials")
+        if (self.normal_pool or self.local_pool) and self.synthesis.fov_range is not None:
+            raise ValueError("the unit pools photograph at one field of view: synthesis.fov_range needs the whole network")
         if self.normal_pool and self.local_pool:
             raise ValueError("local_pool and normal_pool train different units: give one of them")
         if self.normal_pool:
@@ -949,7 +951,7 @@ class Trainer:
         inputs = torch.cat([batch.inputs, batch.varied_inputs]) if use_vc else batch.inputs
         lights = torch.cat([batch.lights, batch.lights]) if use_vc else batch.lights
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=config.bf16):
-            output = self.model(inputs.to(self.device), lights.to(self.device), fov=self.synthesis.fov)
+            output = self.model(inputs.to(self.device), lights.to(self.device), fov=batch.fov)
         target = batch.maps.to(self.device)
         if use_vc:
             original, varied = output.split(maps.shape[0])
@@ -1173,22 +1175,31 @@ class Trainer:
                       else self.config.procedural)
             maps = torch.stack([generate(VALIDATION_SEED + i, config=config).to_tensor()
                                 for i in range(self.config.validation_count)])
-            # Photographed at their own size whatever the run's ``supersample``: the same photos every session.
-            self._validation_batches[of] = synthesize(maps, torch.Generator().manual_seed(12345),
-                                                      dataclasses.replace(self.synthesis, supersample=1),
-                                                      self._extra_inputs())
+            # Photographed at their own size whatever the run's ``supersample``, the held-out set as
+            # the learning curve began (one 45 deg camera, plain sRGB), the run's own as it trains:
+            # in chunks of a field of view each where it draws them.
+            synthesis = dataclasses.replace(self.synthesis, supersample=1)
+            if of == "held_out":
+                defaults = SynthesisConfig()
+                synthesis = dataclasses.replace(synthesis, **{name: getattr(defaults, name) for name in PHONE_LEVERS})
+            generator = torch.Generator().manual_seed(12345)
+            chunk = VALIDATION_CHUNK if synthesis.fov_range is not None else len(maps)
+            self._validation_batches[of] = [synthesize(maps[start:start + chunk], generator, synthesis,
+                                                       self._extra_inputs())
+                                            for start in range(0, len(maps), chunk)]
         return self._validation_batches[of]
 
-    def _predict_validation(self, batch, chunk: int = 16) -> torch.Tensor:
-        """The whole network's maps (B, 10, H, W) of a validation batch, in chunks."""
+    def _predict_validation(self, batches: list[TrainingBatch], chunk: int = 16) -> torch.Tensor:
+        """The whole network's maps (B, 10, H, W) of a validation set's batches, in chunks."""
         model = getattr(self.model, "module", self.model)
         model.eval()
         predicted = []
         with torch.no_grad(), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
-            for start in range(0, batch.maps.shape[0], chunk):
-                output = model(batch.inputs[start:start + chunk].to(self.device),
-                               batch.lights[start:start + chunk].to(self.device), fov=self.synthesis.fov)
-                predicted.append(output.maps.float().cpu())
+            for batch in batches:
+                for start in range(0, batch.maps.shape[0], chunk):
+                    output = model(batch.inputs[start:start + chunk].to(self.device),
+                                   batch.lights[start:start + chunk].to(self.device), fov=batch.fov)
+                    predicted.append(output.maps.float().cpu())
         model.train()
         return torch.cat(predicted)
 
@@ -1198,13 +1209,14 @@ class Trainer:
         sheet of four of the held-out set."""
         from .reporting import validation_sheet
 
-        batch = self.validation_batch("held_out")
+        batches = self.validation_batch("held_out")
         model = getattr(self.model, "module", self.model)
-        predicted, maps = self._predict_validation(batch), batch.maps
+        predicted, maps = self._predict_validation(batches), torch.cat([b.maps for b in batches])
         rmse = unit_normal_map_rmse(predicted, maps)
         score = sum(rmse.values()) / len(rmse)
-        own_batch = self.validation_batch("run_generator")
-        own_rmse = unit_normal_map_rmse(self._predict_validation(own_batch), own_batch.maps)
+        own_batches = self.validation_batch("run_generator")
+        own_maps = torch.cat([b.maps for b in own_batches])
+        own_rmse = unit_normal_map_rmse(self._predict_validation(own_batches), own_maps)
         own_score = sum(own_rmse.values()) / len(own_rmse)
         record = {"step": self.step, "validation_rmse": rmse, "validation_score": score,
                   "validation_rerender_rmse": self._validation_rerender_rmse(predicted, maps),
@@ -1212,7 +1224,7 @@ class Trainer:
                   "validation_tilt_deg": {"predicted": mean_tilt_deg(predicted), "truth": mean_tilt_deg(maps)},
                   "run_generator_validation": {
                       "rmse": own_rmse, "score": own_score,
-                      "flat_normal_rmse": unit_normal_map_rmse(flat_normals(own_batch.maps), own_batch.maps)["normal"]}}
+                      "flat_normal_rmse": unit_normal_map_rmse(flat_normals(own_maps), own_maps)["normal"]}}
         self.log(record)
         if self.config.select_by == "run_generator":
             score = own_score
@@ -1220,7 +1232,8 @@ class Trainer:
             self.best_score = score
             save_checkpoint(self.out / "best.safetensors", model, metadata={"training": {
                 **self.training_record(), "validation": record}})
-        validation_sheet(batch.photos[:4], predicted[:4], maps[:4], self.out / "validation" / f"step_{self.step:07d}.png")
+        validation_sheet(batches[0].photos[:4], predicted[:4], maps[:4],
+                         self.out / "validation" / f"step_{self.step:07d}.png")
         self.plot_losses()
         return record
 
@@ -1259,6 +1272,10 @@ def widen_inputs(source: dict, target: dict, source_inputs: int) -> dict:
 
 #: Seed of the first held-out validation material (training draws material numbers from 0 up).
 VALIDATION_SEED = 10**9
+
+#: Validation photos of a run that draws its field of view per batch are made in chunks of this many,
+#: a field of view each.
+VALIDATION_CHUNK = 8
 
 
 def unit_normal_map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:

@@ -271,10 +271,10 @@ def test_validation_of_the_runs_own_generator_can_select_the_best_weights(tmp_pa
     trainer = Trainer(config, progress=False)
     trainer.out.mkdir(parents=True)  # run() makes it
     # The second set is drawn by the run's generator: the undulation the held-out set lacks.
-    own = trainer.validation_batch("run_generator").maps
+    own = torch.cat([batch.maps for batch in trainer.validation_batch("run_generator")])
     expected = generate(VALIDATION_SEED + 1, config=config.procedural).to_tensor()
     torch.testing.assert_close(own[1], expected)
-    held_out = trainer.validation_batch("held_out").maps
+    held_out = torch.cat([batch.maps for batch in trainer.validation_batch("held_out")])
     assert not torch.equal(own[:, :3], held_out[:, :3])
     records = []
     for step in range(3):  # three different networks; the best by the second set's score is kept
@@ -803,4 +803,4 @@ def test_a_supersampled_run_makes_its_materials_larger_and_learns_from_them_down
     trainer.run()
     assert (tmp_path / "run" / "model.safetensors").is_file()
     # Its validation photographs the fixed materials at their own size, as every run's does.
-    assert trainer.validation_batch().photos.shape[-1] == 32
+    assert trainer.validation_batch()[0].photos.shape[-1] == 32

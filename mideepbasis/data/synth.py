@@ -4,7 +4,9 @@ For a batch of materials M this draws, per material, a hand-held offset and a va
 renders M and M + xi under the same flash through the renderer interface (the ``svbrdf``
 plugin), turns both renders into photos (exposure and white-balance jitter, shot and read
 noise, clipping, 8-bit sRGB quantisation) and builds the 9-channel network inputs that
-training and capture share (``encode_inputs``).
+training and capture share (``encode_inputs``). ``PHONE_PHOTOS`` makes them as phones take
+them: a field of view drawn per batch, tone curves, white-balance casts, vignetting, the
+flash's own falloff, JPEG and slightly tilted samples.
 
 Shapes: maps (B, 10, H, W) [normal 3, diffuse 3, roughness 1, specular 3]; images (B, 3, H, W)
 linear; offsets (B, 2) [patch half-widths]; lights (B, 3) [patch half-widths].
@@ -12,8 +14,11 @@ linear; offsets (B, 2) [patch half-widths]; lights (B, 3) [patch half-widths].
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
+
+import numpy as np
 
 import torch
 
@@ -59,6 +64,37 @@ class SynthesisConfig:
     max_shift: float = 0.3
     """Largest shift of the other maps by the variation xi [unitless]."""
 
+    fov_range: tuple[float, float] | None = None
+    """Draw each batch's field of view between these [deg], the camera's distance log-uniform,
+    instead of ``fov`` (phones are held at many distances); the offsets keep their angles, so their
+    lateral range scales with the distance. None: always ``fov``."""
+
+    cast_in_diffuse: bool = False
+    """A white-balance error tints the target's diffuse (the material as the camera sees it) and
+    leaves its specular as it is, achromatic for a dielectric: the network learns to read a colour
+    cast into the diffuse, never into the specular. False: the target is the material itself."""
+
+    tone_contrast: tuple[float, float] = (0.0, 0.0)
+    """Range (uniform, per photo) of the strength s of a phone's S-shaped tone curve after the sRGB
+    encoding: y' = (1 - s) y + s (3 y^2 - 2 y^3). The capture decodes with plain sRGB, as it must
+    for a photo of unknown processing. 0: plain sRGB."""
+
+    vignetting: tuple[float, float] = (0.0, 0.0)
+    """Range (uniform, per photo) of the lens's darkening v at the image corners: the photo times
+    1 - v (r / r_corner)^2 [fraction]."""
+
+    flash_cone: tuple[float, float] = (0.0, 0.0)
+    """Range (uniform, per photo) of the exponent k of the flash's angular falloff, cos^k of the
+    angle from its axis (a phone's LED is no perfect point light). 0: an isotropic point light."""
+
+    jpeg_quality: tuple[int, int] | None = None
+    """Range (uniform, per photo) of the JPEG quality the 8-bit photo is compressed at; None: none."""
+
+    tilt_deg: float = 0.0
+    """Largest tilt of the sample against the camera [deg] (a hand-held or imperfectly rectified
+    plane): the photo is rendered with every normal tilted by one rotation, uniform up to this
+    angle about a random axis in the plane; the target keeps the material's normals."""
+
     supersample: int = 1
     """Photograph each material at this many times the size its maps come out at, then
     area-downsample the photo and the maps (the normals averaged and made unit), as ``capture``
@@ -69,6 +105,32 @@ class SynthesisConfig:
     def __post_init__(self):
         if not isinstance(self.supersample, int) or self.supersample < 1:
             raise ValueError(f"supersample must be a whole number of at least 1, got {self.supersample!r}")
+        if self.fov_range is not None:
+            low, high = self.fov_range
+            if not 0.0 < low <= high < 180.0:
+                raise ValueError(f"fov_range must be two angles with 0 < low <= high < 180 deg, got {self.fov_range}")
+        for name in ("tone_contrast", "vignetting", "flash_cone"):
+            low, high = getattr(self, name)
+            if not 0.0 <= low <= high:
+                raise ValueError(f"{name} must be a range 0 <= low <= high, got {getattr(self, name)}")
+        if self.tone_contrast[1] > 1.0 or self.vignetting[1] >= 1.0:
+            raise ValueError("tone_contrast must lie in [0, 1] and vignetting in [0, 1)")
+        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality[0] <= self.jpeg_quality[1] <= 100:
+            raise ValueError(f"jpeg_quality must be a range within [1, 100], got {self.jpeg_quality}")
+        if not 0.0 <= self.tilt_deg < 90.0:
+            raise ValueError(f"tilt_deg must lie in [0, 90), got {self.tilt_deg}")
+
+
+#: The fields of ``SynthesisConfig`` that make photos as phones take them, each a lever of its own
+#: (off by default: one 45 deg camera, plain sRGB).
+PHONE_LEVERS = ("fov_range", "cast_in_diffuse", "tone_contrast", "vignetting", "flash_cone", "jpeg_quality",
+                "tilt_deg")
+
+#: Photos as phones take them: the levers on (and a wider white-balance error), as the real-photo
+#: training and validation use them.
+PHONE_PHOTOS = {"fov_range": (20.0, 75.0), "cast_in_diffuse": True, "white_balance_sigma": 0.08,
+                "tone_contrast": (0.0, 0.6), "vignetting": (0.0, 0.35), "flash_cone": (0.0, 3.0),
+                "jpeg_quality": (70, 95), "tilt_deg": 4.0}
 
 
 # --- hand-held offsets -----------------------------------------------------------------------------
@@ -135,31 +197,112 @@ def sample_variation(batch: int, generator: torch.Generator, max_rotation: float
 # --- the camera ---------------------------------------------------------------------------------
 
 
+@dataclass
+class PhoneCamera:
+    """How the camera made each photo of a batch (``sample_camera``); one shot's settings serve
+    both photos of a material (``repeated``).
+
+    Attributes:
+        gains: (B, 3) colour gains (exposure times white balance).
+        tone: (B,) strength of the S-shaped tone curve (``SynthesisConfig.tone_contrast``), or None.
+        vignetting: (B,) darkening at the corners (``SynthesisConfig.vignetting``), or None.
+        jpeg_quality: B JPEG qualities, or None: no JPEG.
+    """
+
+    gains: torch.Tensor
+    tone: torch.Tensor | None = None
+    vignetting: torch.Tensor | None = None
+    jpeg_quality: list[int] | None = None
+
+    def repeated(self, times: int) -> PhoneCamera:
+        """The settings of ``times`` copies of the batch, one after the other."""
+        def repeat(values):
+            return None if values is None else values * times if isinstance(values, list) else values.repeat(
+                times, *([1] * (values.ndim - 1)))
+
+        return PhoneCamera(repeat(self.gains), repeat(self.tone), repeat(self.vignetting), repeat(self.jpeg_quality))
+
+
+def sample_camera(batch: int, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig()) -> PhoneCamera:
+    """Draw the camera of each of ``batch`` photos; only the levers ``config`` turns on draw numbers."""
+    gains = sample_gains(batch, generator, config)
+    tone = vignetting = quality = None
+    if config.tone_contrast[1] > 0:
+        tone = _uniform(batch, config.tone_contrast, generator)
+    if config.vignetting[1] > 0:
+        vignetting = _uniform(batch, config.vignetting, generator)
+    if config.jpeg_quality is not None:
+        low, high = config.jpeg_quality
+        quality = torch.randint(low, high + 1, (batch,), generator=generator).tolist()
+    return PhoneCamera(gains, tone, vignetting, quality)
+
+
 def simulate_photo(radiance: torch.Tensor, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig(),
-                   gains: torch.Tensor | None = None) -> torch.Tensor:
-    """A phone photo of linear radiance: gain jitter, noise, clipping and 8-bit sRGB quantisation.
+                   gains: torch.Tensor | None = None, camera: PhoneCamera | None = None) -> torch.Tensor:
+    """A phone photo of linear radiance: vignetting, gain jitter, noise, clipping, the tone curve,
+    8-bit sRGB quantisation and JPEG, as ``camera`` says (drawn when None).
 
     Args:
         radiance: (B, 3, H, W) linear radiance.
         generator: the random generator.
         config: noise and jitter amounts.
-        gains: (B, 3) colour gains to use (exposure times white balance); drawn when None.
+        gains: (B, 3) colour gains to use (exposure times white balance), in place of ``camera``'s.
+        camera: the camera's settings of each photo (``sample_camera``).
 
     Returns:
-        (B, 3, H, W) linear photo in [0, 1] (values of an 8-bit sRGB image when quantised).
+        (B, 3, H, W) linear photo in [0, 1], as decoded with plain sRGB (values of an 8-bit sRGB
+        image when quantised).
     """
     batch = radiance.shape[0]
-    if gains is None:
-        gains = sample_gains(batch, generator, config)
-    signal = radiance * gains.view(batch, 3, 1, 1).to(radiance)
+    if camera is None:
+        camera = PhoneCamera(gains) if gains is not None else sample_camera(batch, generator, config)
+    elif gains is not None:
+        camera = dataclasses.replace(camera, gains=gains)
+    signal = radiance * camera.gains.view(batch, 3, 1, 1).to(radiance)
+    if camera.vignetting is not None:
+        signal = signal * vignette(camera.vignetting, *radiance.shape[-2:]).to(radiance)
     shot = _log_uniform(batch, config.shot_noise, generator).view(batch, 1, 1, 1).to(radiance)
     read = _log_uniform(batch, config.read_noise, generator).view(batch, 1, 1, 1).to(radiance)
     noise = torch.randn(signal.shape, generator=generator).to(radiance)
     photo = signal + noise * torch.sqrt(shot * signal.clamp(min=0) + read * read)
     photo = photo.clamp(0.0, 1.0)
+    if not config.quantize and camera.tone is None:
+        return photo
+    encoded = linear_to_srgb(photo)
+    if camera.tone is not None:
+        encoded = tone_curve(encoded, camera.tone.view(batch, 1, 1, 1).to(radiance))
     if config.quantize:
-        photo = srgb_to_linear(torch.round(linear_to_srgb(photo) * 255.0) / 255.0)
-    return photo
+        encoded = torch.round(encoded * 255.0) / 255.0
+        if camera.jpeg_quality is not None:
+            encoded = jpeg_round_trip(encoded, camera.jpeg_quality)
+    return srgb_to_linear(encoded)
+
+
+def tone_curve(encoded: torch.Tensor, strength: torch.Tensor) -> torch.Tensor:
+    """A phone's S-shaped tone curve on sRGB-encoded values in [0, 1]: (1 - s) y + s (3 y^2 - 2 y^3),
+    which keeps 0, 1/2 and 1, darkens the shadows and brightens the highlights (s in [0, 1])."""
+    return (1.0 - strength) * encoded + strength * encoded * encoded * (3.0 - 2.0 * encoded)
+
+
+def vignette(strength: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(B, 1, H, W) the lens's falloff 1 - v (r / r_corner)^2 of each strength v (B,)."""
+    points = geometry.pixel_points(height, width)
+    radius = (points[0] ** 2 + points[1] ** 2) / 2.0  # (r / r_corner)^2: 1 at the corners
+    return 1.0 - strength.view(-1, 1, 1, 1) * radius
+
+
+def jpeg_round_trip(encoded: torch.Tensor, qualities: list[int]) -> torch.Tensor:
+    """8-bit sRGB values (B, 3, H, W) in [0, 1] compressed as JPEG at each photo's quality and decoded."""
+    import cv2
+
+    codes = (encoded.detach().cpu() * 255.0).round().clamp(0, 255).to(torch.uint8)
+    decoded = []
+    for image, quality in zip(codes.permute(0, 2, 3, 1).numpy(), qualities, strict=True):
+        ok, data = cv2.imencode(".jpg", np.ascontiguousarray(image[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+        if not ok:
+            raise RuntimeError("JPEG encoding failed")
+        decoded.append(torch.from_numpy(cv2.imdecode(data, cv2.IMREAD_COLOR)[..., ::-1].copy()))
+    return (torch.stack(decoded).permute(0, 3, 1, 2).to(encoded) / 255.0)
 
 
 def sample_gains(batch: int, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig()) -> torch.Tensor:
@@ -167,6 +310,51 @@ def sample_gains(batch: int, generator: torch.Generator, config: SynthesisConfig
     exposure = torch.randn(batch, 1, generator=generator) * config.exposure_sigma
     balance = torch.randn(batch, 3, generator=generator) * config.white_balance_sigma
     return torch.exp(exposure + balance)
+
+
+def colour_cast(gains: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gains (B, 3) split into their brightness (B, 3), the geometric mean of the three repeated,
+    and their colour cast (B, 3), whose geometric mean is 1: gains = brightness * cast."""
+    brightness = torch.exp(torch.log(gains).mean(dim=1, keepdim=True)).expand_as(gains)
+    return brightness, gains / brightness
+
+
+def sample_fov(generator: torch.Generator, config: SynthesisConfig = SynthesisConfig()) -> float:
+    """A batch's field of view [deg]: ``config.fov``, or drawn from ``fov_range`` with the camera's
+    distance log-uniform (no random number drawn without a range)."""
+    if config.fov_range is None:
+        return float(config.fov)
+    near, far = (math.log(constants.camera_height(angle)) for angle in sorted(config.fov_range, reverse=True))
+    height = math.exp(near + (far - near) * torch.rand((), generator=generator).item())
+    return math.degrees(2.0 * math.atan(1.0 / height))
+
+
+def tilt_normals(maps: torch.Tensor, angles: torch.Tensor, azimuths: torch.Tensor) -> torch.Tensor:
+    """Maps (B, 10, H, W) with every normal turned by the angle (B,) [rad] about the axis in the
+    plane at azimuth (B,) [rad]: the material as seen on a tilted sample."""
+    axis_x, axis_y = torch.cos(azimuths), torch.sin(azimuths)
+    cos, sin = torch.cos(angles), torch.sin(angles)
+    # Rodrigues' rotation about the unit axis (ax, ay, 0).
+    rotation = torch.stack([
+        torch.stack([cos + axis_x**2 * (1 - cos), axis_x * axis_y * (1 - cos), axis_y * sin], -1),
+        torch.stack([axis_x * axis_y * (1 - cos), cos + axis_y**2 * (1 - cos), -axis_x * sin], -1),
+        torch.stack([-axis_y * sin, axis_x * sin, cos], -1)], -2).to(maps)
+    tilted = maps.clone()
+    tilted[:, constants.NORMAL] = torch.einsum("bij,bjhw->bihw", rotation, maps[:, constants.NORMAL])
+    return tilted
+
+
+def flash_cone_falloff(lights: torch.Tensor, exponents: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(B, 1, H, W) the flash's angular falloff cos^k of the angle between its axis (straight down)
+    and each pixel's point, for flashes at ``lights`` (B, 3) and exponents k (B,)."""
+    points = geometry.pixel_points(height, width, dtype=lights.dtype, device=lights.device)[None]
+    towards = points - lights.view(-1, 3, 1, 1)
+    cosine = -towards[:, 2:3] / torch.linalg.vector_norm(towards, dim=1, keepdim=True)
+    return cosine.clamp(min=1e-6) ** exponents.view(-1, 1, 1, 1).to(lights)
+
+
+def _uniform(batch: int, bounds: tuple[float, float], generator: torch.Generator) -> torch.Tensor:
+    return bounds[0] + (bounds[1] - bounds[0]) * torch.rand(batch, generator=generator)
 
 
 def _log_uniform(batch: int, bounds: tuple[float, float], generator: torch.Generator) -> torch.Tensor:
@@ -187,6 +375,7 @@ class TrainingBatch:
         offsets: (B, 2) hand-held offsets [patch half-widths]; lights: (B, 3) flash positions.
         inputs, varied_inputs: (B, 9, H, W) network inputs of the photos of M and of M + xi.
         photos, varied_photos: (B, 3, H, W) the linear photos themselves.
+        fov: the field of view the photos were taken with [deg] (``SynthesisConfig.fov_range``).
     """
 
     maps: torch.Tensor
@@ -198,6 +387,7 @@ class TrainingBatch:
     varied_inputs: torch.Tensor
     photos: torch.Tensor
     varied_photos: torch.Tensor
+    fov: float = constants.DEFAULT_FOV_DEG
     extras: dict = field(default_factory=dict)
 
 
@@ -205,33 +395,54 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
                config: SynthesisConfig = SynthesisConfig(), extra_inputs: tuple[str, ...] = ()) -> TrainingBatch:
     """Render and photograph a batch of materials and their variations (one renderer call).
 
-    M and M + xi share the flash position and the camera's gains (one camera, one shot each)
+    M and M + xi share the flash position and the camera's settings (one camera, one shot each)
     but not the noise. ``extra_inputs``: the network's optional input channels. With
     ``config.supersample`` F the maps are F times the batch's size: photos, maps and variations
-    come out area-downsampled by F.
+    come out area-downsampled by F. With ``cast_in_diffuse`` the target maps (``maps``) carry the
+    white balance's colour cast in their diffuse.
     """
     from ..render import render_flash
 
     batch, factor = maps.shape[0], config.supersample
     if maps.shape[-2] % factor or maps.shape[-1] % factor:
         raise ValueError(f"maps of {maps.shape[-2]}x{maps.shape[-1]} cannot be supersampled by {factor}")
+    fov = sample_fov(generator, config)
     variation = sample_variation(batch, generator, config.max_rotation, config.max_shift)
-    varied = variation.apply(maps)
-    offsets = sample_offsets(batch, generator, config.fov, config.max_offset_deg, config.offset_sigma_divisor)
+    offsets = sample_offsets(batch, generator, fov, config.max_offset_deg, config.offset_sigma_divisor)
     # Random numbers come from the (CPU) generator; the renders run where the maps are.
-    lights = geometry.light_positions(offsets, config.fov).to(maps.device)
+    lights = geometry.light_positions(offsets, fov).to(maps.device)
     both_lights = torch.cat([lights, lights])
+    camera = cast = None
+    if config.cast_in_diffuse:  # the target itself depends on the camera: drawn before the renders
+        camera = sample_camera(batch, generator, config)
+        brightness, cast = colour_cast(camera.gains)
+        camera.gains = brightness
+        maps = maps.clone()
+        maps[:, constants.DIFFUSE] = (maps[:, constants.DIFFUSE] * cast.view(batch, 3, 1, 1).to(maps)).clamp(0.0, 1.0)
+    varied = variation.apply(maps)
+    seen = torch.cat([maps, varied])
+    if cast is not None:  # under a co-located flash the Fresnel term is F0: the cast scales it exactly
+        seen = seen.clone()
+        seen[:, constants.SPECULAR] = seen[:, constants.SPECULAR] * torch.cat([cast, cast]).view(2 * batch, 3, 1, 1).to(maps)
+    if config.tilt_deg > 0:
+        angles = torch.deg2rad(_uniform(batch, (0.0, config.tilt_deg), generator))
+        azimuths = _uniform(batch, (0.0, 2.0 * math.pi), generator)
+        seen = tilt_normals(seen, torch.cat([angles, angles]), torch.cat([azimuths, azimuths]))
     with torch.no_grad():
-        radiance = render_flash(torch.cat([maps, varied]), both_lights.view(2 * batch, 1, 3),
-                                fov=config.fov, convention=config.convention)[:, 0]
-    gains = sample_gains(batch, generator, config)
-    photos = simulate_photo(radiance, generator, config, gains=torch.cat([gains, gains]))
+        radiance = render_flash(seen, both_lights.view(2 * batch, 1, 3), fov=fov, convention=config.convention)[:, 0]
+    if config.flash_cone[1] > 0:
+        exponents = _uniform(batch, config.flash_cone, generator)
+        radiance = radiance * flash_cone_falloff(both_lights, torch.cat([exponents, exponents]).to(maps),
+                                                 *radiance.shape[-2:])
+    if camera is None:
+        camera = sample_camera(batch, generator, config)
+    photos = simulate_photo(radiance, generator, config, camera=camera.repeated(2))
     if factor > 1:  # as capture makes a photo smaller: area averages, the normals made unit again
         from ..resampling import downsample, downsample_maps
 
         size = (maps.shape[-2] // factor, maps.shape[-1] // factor)
         photos, maps, varied = downsample(photos, size), downsample_maps(maps, size), downsample_maps(varied, size)
-    inputs = encode_inputs(photos, both_lights, config.fov, config.convention, extra_inputs=extra_inputs)
+    inputs = encode_inputs(photos, both_lights, fov, config.convention, extra_inputs=extra_inputs)
     return TrainingBatch(maps=maps, varied_maps=varied, variation=variation, offsets=offsets, lights=lights,
                          inputs=inputs[:batch], varied_inputs=inputs[batch:], photos=photos[:batch],
-                         varied_photos=photos[batch:])
+                         varied_photos=photos[batch:], fov=fov)

@@ -143,3 +143,147 @@ def test_supersample_is_checked():
         synth.SynthesisConfig(supersample=0)
     with pytest.raises(ValueError, match="cannot be supersampled by 2"):
         synth.synthesize(torch.zeros(1, 10, 15, 15), torch.Generator(), synth.SynthesisConfig(supersample=2))
+
+
+# --- photos as phones take them (SynthesisConfig's phone levers) -----------------------------------
+
+
+def test_the_phone_levers_are_off_by_default_and_draw_nothing():
+    config = synth.SynthesisConfig()
+    assert all(getattr(config, name) == getattr(synth.SynthesisConfig, name) for name in synth.PHONE_LEVERS)
+    generator = torch.Generator().manual_seed(5)
+    state = generator.get_state()
+    assert synth.sample_fov(generator, config) == constants.DEFAULT_FOV_DEG
+    assert torch.equal(generator.get_state(), state)
+    camera = synth.sample_camera(3, torch.Generator().manual_seed(5), config)
+    assert camera.tone is None and camera.vignetting is None and camera.jpeg_quality is None
+    torch.testing.assert_close(camera.gains, synth.sample_gains(3, torch.Generator().manual_seed(5), config))
+
+
+def test_fields_of_view_come_from_log_uniform_camera_distances():
+    config = synth.SynthesisConfig(fov_range=(20.0, 75.0))
+    generator = torch.Generator().manual_seed(0)
+    fovs = np.array([synth.sample_fov(generator, config) for _ in range(4000)])
+    assert 20.0 <= fovs.min() and fovs.max() <= 75.0
+    heights = 1.0 / np.tan(np.radians(fovs) / 2.0)
+    low, high = np.log(1.0 / math.tan(math.radians(37.5))), np.log(1.0 / math.tan(math.radians(10.0)))
+    position = np.sort((np.log(heights) - low) / (high - low))  # uniform on [0, 1] if log-uniform
+    assert np.abs(position - np.arange(1, len(position) + 1) / len(position)).max() < 0.03
+
+
+def test_a_batch_is_photographed_at_its_drawn_field_of_view():
+    maps = random_maps(2, 16)
+    config = synth.SynthesisConfig(fov_range=(20.0, 75.0), quantize=False, shot_noise=(1e-12, 1e-12),
+                                   read_noise=(1e-12, 1e-12))
+    batch = synth.synthesize(maps, torch.Generator().manual_seed(2), config)
+    assert 20.0 <= batch.fov <= 75.0 and abs(batch.fov - 45.0) > 1e-3
+    # The lights stand at the camera's height for that field of view, the photo is their render.
+    torch.testing.assert_close(batch.lights[:, 2], torch.full((2,), constants.camera_height(batch.fov)))
+    gains = synth.sample_gains(2, torch.Generator().manual_seed(0), config)  # any gains: compare ratios
+    expected = render_flash(maps, batch.lights.view(2, 1, 3), fov=batch.fov)[:, 0].clamp(0, 1)
+    ratio = (batch.photos / expected.clamp(min=1e-3))[expected < 0.9]
+    assert ratio.std() / ratio.mean() < 0.2, gains  # one gain per photo and channel, nothing else
+    # The lighting mark of the input is the one of that field of view (the network reads it there).
+    from mideepbasis.model.inputs import LIGHTING_MARK, lighting_mark
+
+    mark = lighting_mark(batch.lights, 16, 16, batch.fov) * 2 - 1
+    torch.testing.assert_close(batch.inputs[:, LIGHTING_MARK], mark)
+
+
+def test_the_lighting_mark_tells_fields_of_view_apart():
+    # The network knows the field of view only through the lighting mark (its input): the glossy
+    # reference's highlight covers more of a narrow view (each pixel sees the flash closer to the
+    # mirror direction), and the falloff to the corners is gentler.
+    from mideepbasis.model.inputs import lighting_mark
+
+    highlight, corners = [], []
+    for fov in (20.0, 45.0, 75.0):
+        light = torch.tensor([[0.0, 0.0, constants.camera_height(fov)]])
+        mark = lighting_mark(light, 64, 64, fov)[0].mean(0)
+        highlight.append((mark > 0.5).float().mean().item())
+        corners.append(mark[0, 0].item())
+    assert highlight[0] > 2 * highlight[1] > 4 * highlight[2] > 0
+    assert corners[0] > corners[1] > corners[2]
+
+
+def test_a_colour_cast_goes_into_the_diffuse_target_not_the_specular():
+    maps = random_maps(3, 16)
+    maps[:, constants.DIFFUSE] *= 0.5  # room for a cast without clipping
+    config = synth.SynthesisConfig(cast_in_diffuse=True, white_balance_sigma=0.2, exposure_sigma=0.0,
+                                   quantize=False, shot_noise=(1e-12, 1e-12), read_noise=(1e-12, 1e-12))
+    batch = synth.synthesize(maps, torch.Generator().manual_seed(4), config)
+    # The target keeps the specular and the normals; its diffuse is the material's times one cast.
+    torch.testing.assert_close(batch.maps[:, constants.SPECULAR], maps[:, constants.SPECULAR])
+    torch.testing.assert_close(batch.maps[:, constants.NORMAL], maps[:, constants.NORMAL])
+    cast = (batch.maps[:, constants.DIFFUSE] / maps[:, constants.DIFFUSE]).mean(dim=(2, 3))
+    assert cast.std(dim=1).min() > 0.02  # a real colour cast
+    torch.testing.assert_close(torch.log(cast).mean(1), torch.zeros(3), atol=1e-5, rtol=0)  # no brightness
+    # The photo is the material itself seen through that cast: diffuse and highlight alike.
+    # (times one brightness per photo: the white balance's mean gain, as exposure).
+    seen = render_flash(maps, batch.lights.view(3, 1, 3))[:, 0] * cast.view(3, 3, 1, 1)
+    keep = (seen < 0.8).all(dim=1, keepdim=True).expand_as(seen)
+    for photo, expected, mask in zip(batch.photos, seen, keep):
+        brightness = (photo[mask] * expected[mask]).sum() / (expected[mask] ** 2).sum()
+        assert abs(brightness.item() - 1.0) < 0.5
+        torch.testing.assert_close(photo[mask], brightness * expected[mask], atol=2e-4, rtol=1e-3)
+
+
+def test_tone_curve_keeps_black_grey_white_and_order():
+    values = torch.linspace(0, 1, 101)
+    for strength in (0.0, 0.3, 1.0):
+        curve = synth.tone_curve(values, torch.tensor(strength))
+        torch.testing.assert_close(curve[[0, 50, 100]], torch.tensor([0.0, 0.5, 1.0]))
+        assert (curve.diff() >= 0).all()
+    torch.testing.assert_close(synth.tone_curve(values, torch.tensor(0.0)), values)
+    strong = synth.tone_curve(values, torch.tensor(1.0))
+    assert strong[25] < values[25] and strong[75] > values[75]  # shadows darker, highlights brighter
+
+
+def test_vignetting_darkens_the_corners_by_its_strength():
+    factor = synth.vignette(torch.tensor([0.0, 0.3]), 64, 64)
+    torch.testing.assert_close(factor[0], torch.ones(1, 64, 64))
+    corner = 1 - 0.3 * ((1 - 1 / 64) ** 2)  # the corner pixel's centre sits half a pixel inside
+    assert factor[1, 0, 0, 0].item() == pytest.approx(corner, abs=1e-6)
+    assert factor[1, 0, 31, 31].item() > 0.999
+
+
+def test_flash_cone_falloff_is_the_cosine_from_the_axis_to_a_power():
+    lights = torch.tensor([[0.3, -0.2, 2.0]])
+    falloff = synth.flash_cone_falloff(lights, torch.tensor([2.5]), 8, 8)
+    x, y = -1 + 1 / 8, 1 - 1 / 8  # the top-left pixel's point
+    cosine = 2.0 / math.sqrt((x - 0.3) ** 2 + (y + 0.2) ** 2 + 4.0)
+    assert falloff[0, 0, 0, 0].item() == pytest.approx(cosine**2.5, rel=1e-5)
+    torch.testing.assert_close(synth.flash_cone_falloff(lights, torch.tensor([0.0]), 8, 8), torch.ones(1, 1, 8, 8))
+
+
+def test_tilted_normals_turn_by_the_angle_about_the_axis():
+    maps = random_maps(2, 4)
+    maps[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+    angle, azimuth = torch.tensor([0.1, 0.05]), torch.tensor([0.0, math.pi / 2])
+    tilted = synth.tilt_normals(maps, angle, azimuth)
+    normals = tilted[:, constants.NORMAL, 0, 0]
+    torch.testing.assert_close(normals.norm(dim=1), torch.ones(2))
+    torch.testing.assert_close(normals[:, 2], torch.cos(angle))
+    # About +x the normal leans in the y-z plane, about +y in the x-z plane.
+    assert abs(normals[0, 0]) < 1e-6 and abs(normals[1, 1]) < 1e-6
+    torch.testing.assert_close(tilted[:, 3:], maps[:, 3:])
+
+
+def test_jpeg_round_trip_keeps_colours_and_loses_more_at_lower_quality():
+    flat = torch.tensor([0.8, 0.2, 0.4]).view(1, 3, 1, 1).expand(1, 3, 32, 32)
+    flat = torch.round(flat * 255) / 255
+    torch.testing.assert_close(synth.jpeg_round_trip(flat, [90]), flat, atol=2.5 / 255, rtol=0)  # RGB order kept
+    generator = torch.Generator().manual_seed(0)
+    image = torch.nn.functional.interpolate(torch.rand(1, 3, 8, 8, generator=generator), size=64, mode="bicubic")
+    image = torch.round(image.clamp(0, 1) * 255) / 255
+    errors = [(synth.jpeg_round_trip(image, [quality]) - image).abs().mean().item() for quality in (95, 70)]
+    assert errors[0] < 3 / 255 and errors[1] > errors[0] * 1.3, errors
+
+
+def test_phone_photos_make_valid_inputs_and_keep_the_pair_consistent():
+    maps = random_maps(2, 32)
+    batch = synth.synthesize(maps, torch.Generator().manual_seed(1), synth.SynthesisConfig(**synth.PHONE_PHOTOS))
+    assert torch.isfinite(batch.inputs).all() and batch.inputs.abs().max() <= 1.0
+    assert 20.0 <= batch.fov <= 75.0
+    # M + xi is the variation of the target (the diffuse with its cast), as the consistency loss needs.
+    torch.testing.assert_close(batch.varied_maps, batch.variation.apply(batch.maps))
