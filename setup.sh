@@ -13,7 +13,7 @@ have_llvm() {
 # The quickest Python 3.11 that can make a virtual environment. Interpreters differ: pyenv's
 # default build (no profile-guided optimisation, a shared libpython) ran this project's Python half
 # as fast as Debian's /usr/bin/python3.11, and every capture command 0.64 s slower (5.52 against
-# 6.31 s, benchmarks/README.md, seventeenth session).
+# 6.31 s: benchmarks/command_ab.py --before-python, benchmarks/README.md).
 python_speed() {  # best of 3 of a fixed loop [s], or nothing when $1 is not a Python 3.11 with venv
     "$1" - <<'PYTHON' 2>/dev/null
 import sys, time

@@ -6,14 +6,13 @@ Every variant is trained from the same seed on the same procedural stream with t
 (steps, batch, resolution), then evaluated the same way on the 84 shared test materials resampled
 to the training resolution (inputs under seeded hand-held offsets given to the model, no
 refinement, 30 random lights and views). Writes benchmarks/ablations.md (the table beside the
-paper's) and benchmarks/results/ablations.json. A variant whose model already exists is not
-trained again (delete its folder to retrain).
+paper's; the run's date and machine are in the JSON) and benchmarks/results/ablations.json. A
+variant whose model already exists is not trained again (delete its folder to retrain).
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import time
 from pathlib import Path
@@ -103,8 +102,7 @@ def main() -> None:
         rows["trivial baseline (no training)"] = trivial_row(args.size)
     budget = {"steps": args.steps, "batch": args.batch, "size": args.size, "preset": "compact", "data": "procedural"}
     write_report(RESULTS / "ablations.json", "ablations", {"budget": budget, "rows": rows})
-    date = datetime.date.today().isoformat()
-    lines = [f"# Ablations ({date})", "",
+    lines = ["# Ablations", "",
              f"Budget for every variant: compact preset, {args.steps} steps of {args.batch} procedural materials at "
              f"{args.size}x{args.size} (each seen twice with the variation-consistency loss), seed 11. Evaluation: "
              f"the 84 shared test materials resampled to {args.size}x{args.size}, seeded hand-held offsets given to the "

@@ -13,7 +13,7 @@ threads; for the commands, their processes') [s]:
 - ``search_refine_paper``: the same with the paper's refinement (500 steps, normals refined too);
 - ``command``: the whole ``mideepbasis capture`` command, start-up and all outputs included;
   ``command_paper`` with the paper's refinement, ``command_1024`` and ``command_2048`` with the
-  photo processed at that resolution (issue 14's targets are for these whole commands),
+  photo processed at that resolution (the capture targets are for these whole commands),
   ``command_no_shapes`` without the sphere and cloth previews (what those two images cost);
 - ``search_refine_1024``: as ``search_refine`` with the photo processed at 1024x1024 (in one
   process with earlier repeats, so its peak memory holds two captures);

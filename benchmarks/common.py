@@ -6,6 +6,7 @@ import datetime
 import json
 import os
 import platform
+import shlex
 import sys
 from pathlib import Path
 
@@ -59,9 +60,10 @@ def machine() -> dict:
 
 
 def write_report(path: Path, name: str, report: dict) -> Path:
-    """Write ``report`` (with the benchmark's name, the date and the machine) as JSON, atomically."""
+    """Write ``report`` (with the benchmark's name, the date, the command line and the machine) as
+    JSON, atomically."""
     document = {"benchmark": name, "date": datetime.datetime.now().isoformat(timespec="seconds"),
-                "machine": machine(), **report}
+                "command": shlex.join(sys.argv), "machine": machine(), **report}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_suffix(".json.tmp")

@@ -12,10 +12,10 @@ Measures:
   pipeline with the materials made by the loader training uses (``Trainer.loader``: two workers);
 - coverage: histograms of each map's per-material mean and spread, and of normal tilt, for
   procedural materials beside the 84 shared test materials (../shared/data, skipped if absent),
-  written to benchmarks/results/coverage.png. Values are compared as the renderer uses them
-  (linear; the test maps are used as stored, like the reference implementations do). With
-  ``--run-config``, the procedural materials are drawn as that training run drew them (its
-  undulation, low relief and inversion), the figure written beside OUT.json.
+  written to benchmarks/results/coverage.png (with ``-o OUT.json``: OUT.png beside it). Values are
+  compared as the renderer uses them (linear; the test maps are used as stored, like the reference
+  implementations do). With ``--run-config``, the procedural materials are drawn as that training
+  run drew them (its undulation, low relief and inversion).
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ def _statistics(maps: np.ndarray) -> np.ndarray:
 
 
 def kinds(statistics: np.ndarray) -> dict:
-    """Shares of the kinds of material issue 11 asks the data to hold, from ``_statistics`` rows."""
+    """Shares of the kinds of material the training data should hold, from ``_statistics`` rows."""
     diffuse, roughness, specular, chroma, correlation = (statistics[:, i] for i in (0, 2, 4, 8, 9))
     metal = (specular > 0.5) & (diffuse < 0.1)
     return {"metal (specular > 0.5, diffuse < 0.1)": round(float(metal.mean()), 3),
@@ -221,18 +221,19 @@ def main() -> None:
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "data.json")
     args = parser.parse_args()
     settings = run_generator_settings(args.run_config) if args.run_config else None
+    # The coverage figure: results/coverage.png for the default report, else OUT.png beside OUT.json.
+    default_output = args.output.resolve() == (RESULTS / "data.json").resolve()
+    figure = RESULTS / "coverage.png" if default_output else args.output.with_suffix(".png")
 
     report = {"targets": TARGETS}
     if args.coverage_only:
-        figure = args.output.with_suffix(".png") if args.run_config else \
-            RESULTS / ("coverage_legacy_relief.png" if args.legacy_relief else "coverage.png")
         report["coverage"] = coverage(args.coverage_count, figure, args.legacy_relief, settings)
         print("coverage:", json.dumps(report["coverage"], indent=1))
         write_report(args.output, "data", report)
         return
     report["synthesis"] = synthesis_speed(batch=16, batches=args.synthesis_batches, size=256)
     print("synthesis:", report["synthesis"])
-    report["coverage"] = coverage(args.coverage_count, RESULTS / "coverage.png")
+    report["coverage"] = coverage(args.coverage_count, figure, args.legacy_relief, settings)
     print("coverage:", {k: v for k, v in report["coverage"].items() if "percentiles" not in k})
     report["generator"] = generator_speed(args.generator_count, 256)
     print("generator:", report["generator"])

@@ -6,16 +6,16 @@ For each material (two procedural ones and the bundled example material, 256 px)
 capture's environment preview (``render.scenes.preview_scene``, studio environment, 256 px) with
 each sampler and sample count below, and reports the render time (the fastest of ``--repeats``,
 the kernels compiled by an untimed render first) and the sRGB RMSE of the clipped image against a
-``--reference-spp`` render with independent samples and another seed: the preview's noise.
-``results/preview_noise.json``. With ``--shapes``, the same for the sphere and cloth previews
-(``render.scenes.shape_scene``, maps repeated twice as a capture shows them) with
-``SHAPE_SETTINGS``: ``results/preview_noise_shapes.json``. With ``--filters``, the capture's own
-sampler and count only (both previews' kinds), once with Mitsuba's Gaussian film filter and once
+``--reference-spp`` render with independent samples and another seed: the preview's noise. With
+``--shapes``, the same for the sphere and cloth previews (``render.scenes.shape_scene``, maps
+repeated twice as a capture shows them) with ``SHAPE_SETTINGS``. With ``--filters``, the capture's
+own sampler and count only (all three previews), once with Mitsuba's Gaussian film filter and once
 box-filtered and developed by ``render.scenes.render_preview`` (its time included), against the
-same Gaussian-filtered reference: ``results/preview_noise_filters.json``. With ``--settings
-SAMPLER:SPP ...``, those samplers and counts instead of the lists below, box-filtered and developed
-as a capture's previews are. The renders of a material are timed round by round over its
-settings, so that the machine's drift falls on all of them alike.
+same Gaussian-filtered reference. With ``--settings SAMPLER:SPP ...``, those samplers and counts
+instead of the lists below, box-filtered and developed as a capture's previews are. The renders of
+a material are timed round by round over its settings, so that the machine's drift falls on all
+of them alike. Every mode writes ``results/preview_noise.json`` (its rows name sampler, count and
+filter).
 """
 
 from __future__ import annotations
@@ -28,12 +28,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent))
 from common import RESULTS, write_report  # noqa: E402
 
-#: (sampler, samples per pixel): the capture's preview before (64 independent) and candidates;
-#: the stratified samplers' counts are the squares (of primes for ``orthogonal``) they need.
+#: (sampler, samples per pixel) of the environment preview: independent samples (64 and 25) and
+#: stratified candidates, whose counts are the squares (of primes for ``orthogonal``) they need.
 SETTINGS = (("independent", 64), ("independent", 25), ("multijitter", 16), ("multijitter", 20), ("multijitter", 25),
             ("multijitter", 36), ("orthogonal", 25), ("ldsampler", 16))
 
-#: The same for the shape previews: the capture's before (32 independent) and candidates.
+#: The same for the shape previews: 32 independent samples and stratified candidates.
 SHAPE_SETTINGS = (("independent", 32), ("orthogonal", 25), ("multijitter", 16), ("multijitter", 20),
                   ("multijitter", 25), ("orthogonal", 9))
 
@@ -48,11 +48,9 @@ def main() -> None:
     parser.add_argument("--settings", nargs="+", default=None, metavar="SAMPLER:SPP",
                         help="these samplers and counts instead of SETTINGS (or SHAPE_SETTINGS), box-filtered "
                              "and developed as a capture's previews are (render.scenes.render_preview)")
-    parser.add_argument("-o", "--output", type=Path, default=None,
-                        help="default results/preview_noise.json (--shapes: _shapes, --filters: _filters)")
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "preview_noise.json")
     args = parser.parse_args()
-    output = args.output or RESULTS / ("preview_noise_filters.json" if args.filters
-                                       else "preview_noise_shapes.json" if args.shapes else "preview_noise.json")
+    output = args.output
 
     import numpy as np
 

@@ -16,9 +16,9 @@ With ``--chunks``, only the time of the 8-symmetry prediction with each number o
 run through the network at a time (``network.SYMMETRY_CHUNK``): the chunks alternate in each
 round (the order reversed every other round), ``--repeats`` rounds after one untimed call each,
 and the largest difference of the maps from the first chunk's is reported (the chunking must not
-change the prediction); ``results/symmetry_chunks.json``.
+change the prediction).
 
-Writes benchmarks/results/symmetries.json.
+Both modes write benchmarks/results/symmetries.json.
 """
 
 from __future__ import annotations
@@ -116,8 +116,7 @@ def main() -> None:
     parser.add_argument("--chunks", type=int, nargs="+", default=None,
                         help="time only the 8-symmetry prediction with these symmetry chunks")
     parser.add_argument("--repeats", type=int, default=7, help="rounds of --chunks")
-    parser.add_argument("-o", "--output", type=Path, default=None,
-                        help="default results/symmetries.json, with --chunks results/symmetry_chunks.json")
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "symmetries.json")
     args = parser.parse_args()
     if args.chunks:
         capturer = Capturer(args.model, CaptureConfig(fov=constants.DEFAULT_FOV_DEG))
@@ -126,7 +125,7 @@ def main() -> None:
         for chunk, row in report["chunks"].items():
             print(f"chunk {chunk}: {1000 * row['median_s']:.0f} ms, maps differ by at most "
                   f"{row['largest_map_difference']:.1e}")
-        write_report(args.output or RESULTS / "symmetry_chunks.json", "symmetry_chunks", report)
+        write_report(args.output, "symmetries", report)
         return
     if not SHARED_TEST.is_dir():
         raise SystemExit(f"{SHARED_TEST} is absent")
@@ -147,7 +146,7 @@ def main() -> None:
             row = report[name][count]
             print(f"| {count} | {name} | {row['normal']:.4f} | {row['diffuse']:.4f} | {row['roughness']:.4f} | "
                   f"{row['specular']:.4f} | {row['rerender']:.4f} | {1000 * report['predict_seconds'][count]:.0f} |")
-    write_report(args.output or RESULTS / "symmetries.json", "symmetries", report)
+    write_report(args.output, "symmetries", report)
 
 
 if __name__ == "__main__":

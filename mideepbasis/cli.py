@@ -58,7 +58,8 @@ COMMAND_HELP = {
 def _add_render(subparsers) -> None:
     parser = subparsers.add_parser(
         "render", help=COMMAND_HELP["render"],
-        description="Render a material folder (DESIGN section 3). Writes the linear EXR and an sRGB PNG beside it. "
+        description="Render a material folder (docs/ARCHITECTURE.md section 6). "
+                    "Writes the linear EXR and an sRGB PNG beside it. "
                     "With --light flash and no --spp, renders the per-pixel flash formula exactly; "
                     "with --spp, path traces the flash scene.")
     parser.add_argument("material", type=Path, metavar="MATERIAL_DIR", help="material folder (normal, diffuse, roughness, specular)")

@@ -1,7 +1,7 @@
 """Capture geometry, shading and I/O defaults: every default lives here, once.
 
 Units are given in brackets. Distances are in patch half-widths: the sample is
-the square [-1, 1]^2 in the plane z = 0 (DESIGN section 2).
+the square [-1, 1]^2 in the plane z = 0 (docs/ARCHITECTURE.md section 3).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def camera_height(fov_deg: float = DEFAULT_FOV_DEG) -> float:
 
 # --- shading -------------------------------------------------------------------------------------
 
-#: The shading conventions every renderer, reader and checkpoint names (DESIGN section 2).
+#: The shading conventions every renderer, reader and checkpoint names (docs/ARCHITECTURE.md section 4).
 CONVENTIONS = ("physical", "deepbasis")
 
 #: The convention used where none is given.

@@ -6,7 +6,7 @@ place at the end, so the target is either complete or untouched.
 Files of a capture folder:
 
 - ``normal.png``, ``diffuse.png``, ``roughness.png``, ``specular.png``, ``material.json``: the
-  material (DESIGN section 3); with ``exr=True`` also the ``.exr`` maps (linear, signed normals);
+  material (docs/ARCHITECTURE.md section 6); with ``exr=True`` also the ``.exr`` maps (linear, signed normals);
 - ``light.json``: the flash offset [patch half-widths] and its angle [deg], the field of view and
   where it came from, the lighting search's passes;
 - ``photo.png`` (the working photo), ``rerender.png`` (the material under the estimated flash),

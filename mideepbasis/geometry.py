@@ -1,4 +1,4 @@
-"""Capture geometry (DESIGN section 2): pixel points, light positions and hand-held offsets.
+"""Capture geometry (docs/ARCHITECTURE.md section 3): pixel points, light positions and hand-held offsets.
 
 The sample is the square [-1, 1]^2 in the plane z = 0; camera and flash sit together at
 (tx, ty, H) with H = 1 / tan(fov / 2). Distances are in patch half-widths.
@@ -72,7 +72,7 @@ def flash_intensity(fov: float = constants.DEFAULT_FOV_DEG, convention: str = co
 def lighting_mark_material(height: int, width: int) -> torch.Tensor:
     """The lighting-mark reference material, (1, 10, H, W): flat, diffuse 0.1, specular 0.5, roughness 0.15.
 
-    Rendered under a hypothesised flash, it tells the network where that flash is (DESIGN section 1).
+    Rendered under a hypothesised flash, it tells the network where that flash is (docs/ARCHITECTURE.md section 7).
     """
     maps = torch.empty(1, constants.BASIS_CHANNELS, height, width)
     maps[:, 0:2] = 0.0

@@ -1,6 +1,6 @@
 """Image I/O: PNG (8/16-bit), JPEG and OpenEXR, the sRGB transfer function, EXIF, size limits.
 
-Everything inside the project is linear (DESIGN section 3); the sRGB curve is applied here, at the
+Everything inside the project is linear (docs/ARCHITECTURE.md section 5); the sRGB curve is applied here, at the
 file boundary, and only when the caller says the data is colour. Arrays on disk and in this module
 are (H, W, C) float32; C is 1 (grey) or 3 (RGB).
 

@@ -1,6 +1,6 @@
 """The Material container: four SVBRDF maps, their on-disk folder, dataset strips and PBR conversion.
 
-In memory (DESIGN section 3) a material is four float32 CPU tensors, all linear:
+In memory (docs/ARCHITECTURE.md section 5) a material is four float32 CPU tensors, all linear:
 ``normal`` (3, H, W) unit vectors, +z out of the surface, OpenGL (+y up); ``diffuse`` (3, H, W)
 albedo [0, 1]; ``roughness`` (1, H, W) [0, 1], alpha = r^2; ``specular`` (3, H, W) F0 [0, 1].
 
@@ -39,7 +39,8 @@ _FORMAT_VERSION = 1
 REPAIRED_NORMAL_Z = 1e-3
 
 _SAVE_FORMATS = {"png": ("png", 8), "png16": ("png", 16), "exr": ("exr", 32)}
-#: Encodings a material folder may declare per map; the first is the DESIGN default per format.
+#: Encodings a material folder may declare per map; the first is the default per format
+#: (docs/ARCHITECTURE.md section 6).
 _DEFAULT_ENCODING = {
     "png": {"normal": "unsigned-opengl", "diffuse": "srgb", "roughness": "linear", "specular": "srgb"},
     "exr": {"normal": "signed", "diffuse": "linear", "roughness": "linear", "specular": "linear"},
@@ -61,7 +62,7 @@ class MaterialError(InputError):
 
 @dataclass(eq=False, repr=False)
 class Material:
-    """An SVBRDF: normal, diffuse, roughness and specular maps (DESIGN sections 1-3).
+    """An SVBRDF: normal, diffuse, roughness and specular maps (docs/ARCHITECTURE.md sections 4-6).
 
     NumPy arrays are accepted and every map becomes a float32 CPU tensor (autograd history is
     kept). Validation: (C, H, W) shapes with the right channel counts and equal H, W >= 2; finite
@@ -204,7 +205,7 @@ class Material:
     # --- material folder ---------------------------------------------------------------------------
 
     def save(self, folder: str | os.PathLike, *, format: str = "png", normal_convention: str = "opengl") -> Path:
-        """Write the material folder (DESIGN section 3): four maps, then ``material.json``.
+        """Write the material folder (docs/ARCHITECTURE.md section 6): four maps, then ``material.json``.
 
         Every file is written atomically and ``material.json`` last, so a folder with a
         ``material.json`` is complete.
@@ -254,8 +255,8 @@ class Material:
         """Read a material folder written by :meth:`save` or by hand.
 
         ``material.json`` decides the file format and encodings. Without it the folder must hold
-        one complete set of ``.png`` or ``.exr`` maps, read with the DESIGN defaults (noted in the
-        provenance). Decoded normals are renormalised (undoing quantisation).
+        one complete set of ``.png`` or ``.exr`` maps, read with the defaults of docs/ARCHITECTURE.md
+        section 6 (noted in the provenance). Decoded normals are renormalised (undoing quantisation).
 
         Raises:
             MaterialError: missing folder or map, bad ``material.json``, unreadable map, maps of
@@ -277,7 +278,7 @@ class Material:
                 "source": folder.name,
                 "file_format": suffix,
                 "encoding": encoding,
-                "note": "no material.json; DESIGN section 3 defaults assumed",
+                "note": "no material.json; docs/ARCHITECTURE.md section 6 defaults assumed",
             }
         paths = {name: folder / f"{name}.{suffix}" for name in MAP_NAMES}
         for name, path in paths.items():

@@ -1,7 +1,7 @@
 """The relightable viewer in a capture's ``report.html``: WebGL 2, self-contained, offline.
 
 The page embeds the capture's four PNG maps (as data URIs, so that WebGL may read them from
-``file://``), the shader (``assets/viewer/shading.frag``: DESIGN's ``physical`` formula, as
+``file://``), the shader (``assets/viewer/shading.frag``: the ``physical`` formula of docs/ARCHITECTURE.md section 4, as
 ``render/shading.py`` has it), the viewer's script (``assets/viewer/viewer.js``) and the studio
 environment prefiltered for split-sum lighting (``assets/viewer/studio_prefiltered.json``, made by
 ``scripts/make_viewer_environment.py``). The camera sits above the sample's centre at the capture's

@@ -34,12 +34,12 @@ VARIANTS = {
     "local16": ["--render-weight", "0", "--network-local-width", "16"],
     "local24": ["--render-weight", "0", "--network-local-width", "24"],
     # The normal unit (relief inputs, a slope shared by the bases): alone, the rest frozen as
-    # --init loaded it, and trained with everything else (MODEL.md, 2026-11-30 second session).
+    # --init loaded it, and trained with everything else (MODEL.md).
     "normal_unit": ["--render-weight", "0", "--vc-weight", "0", "--network-normal-unit-width", "16",
                     "--train-only", "normal_unit"],
     "normal_unit_all": ["--render-weight", "0", "--network-normal-unit-width", "16"],
     # The same on materials with a broad undulation under their relief, which the shared test set
-    # has and the generator's defaults lack (MODEL.md, 2026-11-30 third session).
+    # has and the generator's defaults lack (MODEL.md).
     "normal_unit_coarse": ["--render-weight", "0", "--vc-weight", "0", "--network-normal-unit-width", "16",
                            "--train-only", "normal_unit", "--procedural-coarse-relief-tilt-deg", "1.5,30"],
     "coarse_all": ["--render-weight", "0", "--network-normal-unit-width", "16",
@@ -85,7 +85,8 @@ def wait_all(processes: dict, log, every: float = 0.0, copy=None) -> None:
 
 
 def rate(run: Path) -> float:
-    """Steps per second of a run, start-up excluded (its last session-rate record)."""
+    """Steps per second of a run, start-up excluded (the last ``session_steps_per_second`` record of
+    its train.jsonl: the training process's steps since its first one)."""
     records = [json.loads(line) for line in (run / "train.jsonl").read_text().splitlines()]
     return [r["session_steps_per_second"] for r in records if "session_steps_per_second" in r][-1]
 

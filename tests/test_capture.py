@@ -694,7 +694,7 @@ def test_importing_the_package_sets_a_short_openmp_spin_unless_the_user_chose():
 
 
 def test_the_public_capture_is_callable_as_design_promises(tmp_path):
-    # DESIGN section 4: `from mideepbasis import capture; capture("photo.jpg")`, in a fresh process.
+    # docs/ARCHITECTURE.md section 10: `from mideepbasis import capture; capture("photo.jpg")`, in a fresh process.
     import subprocess
     import sys
 

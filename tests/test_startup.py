@@ -62,7 +62,7 @@ def _in_a_collected_generation(obj) -> bool:
 
 def test_what_a_program_froze_itself_stays_frozen(collector):
     # Judged by the objects, not by ``gc.get_freeze_count()``: a frozen object freed meanwhile
-    # (in a long test session) lowers the count without anything being thawed.
+    # (in a long test run) lowers the count without anything being thawed.
     frozen_before = Node()
     gc.freeze()
     assert not _in_a_collected_generation(frozen_before)

@@ -4,7 +4,7 @@
     result = capture("flash_photo.jpg")                   # a CaptureResult
     result.material.save("out/")
 
-Stages (DESIGN section 1), one module each, run by the engine in ``pipeline`` (``Capturer``):
+Stages (docs/ARCHITECTURE.md section 10), one module each, run by the engine in ``pipeline`` (``Capturer``):
 
 1. **Photo** (``photo``): read, EXIF field of view, crop, centre square, working resolution.
 2. **Lighting search** (``search``): the flash position of a hand-held shot.
@@ -34,7 +34,7 @@ __all__ = ["MAX_NATIVE_RESOLUTION", "MIN_PHOTO_SIZE", "CaptureConfig", "CaptureR
 
 
 class _CallableModule(type(sys.modules[__name__])):
-    """This package, callable as its ``capture`` function: DESIGN section 4 promises
+    """This package, callable as its ``capture`` function: docs/ARCHITECTURE.md section 10 promises
     ``from mideepbasis import capture; capture("photo.jpg")``, and once imported the subpackage
     ``mideepbasis.capture`` is what that name is bound to."""
 

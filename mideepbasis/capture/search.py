@@ -43,7 +43,7 @@ class SearchConfig:
     """Candidates per side of the square grid over the offsets within delta. A coarser grid makes
     each pass's move longer, so the passes reach the flash in fewer of them; the fine grid around
     the last candidate then places it. On 300 held-out procedural searches (benchmarks/search_prior.py
-    --materials 100 --grids 11 13 15 17 21, fifteenth session) 15 against 21 gave mean / median /
+    --materials 100 --grids 11 13 15 17 21) 15 against 21 gave mean / median /
     90th percentile error 4.67 / 3.76 / 9.72 against 4.68 / 3.89 / 9.99 deg, with 2.19 instead of
     2.67 network passes and 0.29 instead of 0.39 s a search; 11 and 13 were quicker still, with
     worse medians (4.08, 3.99 deg)."""
@@ -70,8 +70,8 @@ class SearchConfig:
     to the nearest candidate). The material is predicted for the current light, so the best
     candidate lies between the current light and the true one; a model whose material follows the
     light makes the passes walk a grid step or so at a time. Tried on held-out procedural materials
-    with the tenth session's model (benchmarks/search_prior.py --relaxations, 120 searches): mean
-    error 4.84 / 4.86 / 4.94 deg at 1 / 1.5 / 2, 2.74 / 2.52 / 2.87 network passes: kept at 1."""
+    (benchmarks/search_prior.py --relaxations, 120 searches; benchmarks/README.md names the model):
+    mean error 4.84 / 4.86 / 4.94 deg at 1 / 1.5 / 2, 2.74 / 2.52 / 2.87 network passes: kept at 1."""
 
     prior: float = 0.02
     """Weight of the squared offset [patch half-widths^2] added to the objective (mean L1), a pull
@@ -85,8 +85,8 @@ class SearchConfig:
     start: str = field(default="highlight", metadata={"choices": ("centre", "highlight")})
     """Where the passes start: at the candidate nearest the photo's brightest spot
     (``highlight_offset``), or at the centred flash. On 300 held-out procedural searches
-    (benchmarks/search_prior.py --materials 100 --starts highlight --settle-steps 0 1, fifteenth
-    session; the brightest spot alone is 4.88 deg off on average) the highlight with
+    (benchmarks/search_prior.py --materials 100 --starts highlight --settle-steps 0 1; the
+    brightest spot alone is 4.88 deg off on average) the highlight with
     ``settle_steps`` 1 gave mean / median / 90th percentile error 3.98 / 3.47 / 7.95 deg in 1.28
     network passes and 0.17 s a search, against 4.67 / 3.76 / 9.72 deg, 2.19 passes and 0.29 s from
     the centre with ``settle_steps`` 0; better in every roughness group."""
@@ -96,8 +96,8 @@ class SearchConfig:
     ``with_normal_unit``). Without it a pass costs less (the bundled photo at 128 px: 65 against
     111 ms) and the candidates are rendered with the bases' normals alone, which found the flash
     better on held-out procedural materials (benchmarks/search_prior.py --normal-unit on off, 120
-    searches, the tenth session's weights): mean error 4.84 -> 4.37 deg, 2.74 -> 2.59 passes. On the
-    shared test set (``evaluate --lighting``) it was 0.06 deg worse: 3.03 -> 3.09 deg."""
+    searches; benchmarks/README.md names the weights): mean error 4.84 -> 4.37 deg, 2.74 -> 2.59
+    passes. On the shared test set (``evaluate --lighting``) it was 0.06 deg worse: 3.03 -> 3.09 deg."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,7 +1,7 @@
 """Material readers: Deschaintre strips, folders of per-map images, material folders, the procedural stream.
 
-Every reader yields ``Material`` objects in DESIGN conventions and says how its files were
-encoded (``encoding`` and each material's provenance). A corrupt or missing file never stops a
+Every reader yields ``Material`` objects in the conventions of docs/ARCHITECTURE.md sections 5-6
+and says how its files were encoded (``encoding`` and each material's provenance). A corrupt or missing file never stops a
 run: it is skipped with a warning and counted in ``skipped``.
 
     for material in DeschaintreDataset("../shared/data/deschaintre2018-test"): ...
@@ -98,7 +98,7 @@ class DeschaintreDataset(MaterialReader):
 
 
 class MaterialFolderDataset(MaterialReader):
-    """Material folders of DESIGN section 3 (``material.json`` plus four maps) under ``root``."""
+    """Material folders of docs/ARCHITECTURE.md section 6 (``material.json`` plus four maps) under ``root``."""
 
     encoding = "material.json"
 

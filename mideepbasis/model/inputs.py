@@ -13,7 +13,7 @@ channels                name          content
 9 : 9 + 3 k             extras        the network's ``extra_inputs`` (``EXTRA_INPUTS``), 3 each
 ======================  ============  ==========================================================
 
-(DESIGN section 1.) Shapes: photos (B, 3, H, W) linear; lights (B, 3) [patch half-widths].
+(docs/ARCHITECTURE.md section 7.) Shapes: photos (B, 3, H, W) linear; lights (B, 3) [patch half-widths].
 """
 
 from __future__ import annotations

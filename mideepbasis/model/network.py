@@ -1,6 +1,6 @@
 """DeepBasisNet: joint prediction of global and local basis materials and their blending weights.
 
-DESIGN section 1. From the 9-channel input (photo, log-compressed photo, lighting mark):
+docs/ARCHITECTURE.md section 7. From the 9-channel input (photo, log-compressed photo, lighting mark):
 
 - a shared encoder (strided 4x4 convolutions, instance norm, and a global feature track that
   is fed back into every level, after Deschaintre et al. 2018) down to a bottleneck;
@@ -13,7 +13,7 @@ DESIGN section 1. From the 9-channel input (photo, log-compressed photo, lightin
 
 Bases live in the network's *signed* space, where every parameter is in [-1, 1]:
 ``[n (3), 2 d - 1 (3), 2 r - 1, 2 s - 1 (3)]``. ``to_maps`` and ``to_signed`` convert to and
-from the maps of DESIGN section 3. Shapes: inputs (B, 9, H, W); lights (B, 3); weights
+from the maps of docs/ARCHITECTURE.md section 5. Shapes: inputs (B, 9, H, W); lights (B, 3); weights
 (B, N, H, W); global bases (B, N, 10); bases (B, N, 10, H, W); maps (B, 10, H, W).
 
 Two presets: ``paper`` (the published sizes, laid out so that the authors' weights can be
@@ -84,7 +84,7 @@ class NetworkConfig:
     """Shading convention of the error-map render (and of the training renders)."""
 
     extra_inputs: tuple[str, ...] = ()
-    """Optional input channels that make the shading explicit, after the 9 of DESIGN section 1:
+    """Optional input channels that make the shading explicit, after the 9 of docs/ARCHITECTURE.md section 7:
     ``shading`` and/or ``highpass`` (``model.inputs.EXTRA_INPUTS``)."""
 
     plane_extent: float = 1.0

@@ -46,7 +46,7 @@ def render_material(material, light: str = "flash", fov: float = constants.DEFAU
         light: ``flash`` (the capture) or ``env`` (the preview).
         fov: field of view of the flash camera [deg].
         offset: hand-held offset (tx, ty) of camera and flash [patch half-widths].
-        spp: samples per pixel. For the flash, None renders DESIGN's per-pixel formula
+        spp: samples per pixel. For the flash, None renders the per-pixel formula of docs/ARCHITECTURE.md section 4
             exactly (no ray tracing) and a number path traces the flash scene.
         convention: shading convention; default the material's.
         environment: ``studio``, ``sunsky`` or an EXR/HDR file, for ``env``.

@@ -4,12 +4,12 @@ For every material ``b`` of a batch, every light ``k`` and every pixel (row i, c
 pixel sees the plane point ``p = (-1 + (2j + 1) / w, 1 - (2i + 1) / h, 0)``; camera and flash
 sit together at ``c_bk``; the ``svbrdf`` plugin is evaluated with ``wi = wo = normalize(c - p)``
 and the result is scaled by the light's transport factor (``shading.flash_factor``). This is
-DESIGN section 2's ``physical`` formula exactly.
+the ``physical`` formula of docs/ARCHITECTURE.md section 4 exactly.
 
 All B x K x h x w evaluations run in one kernel. Light positions, intensity and maps are
 kernel inputs rather than constants, so new positions reuse the compiled kernel.
 
-Layout (Mitsuba side, DESIGN section 3): the maps of a batch are stacked vertically into
+Layout (Mitsuba side, docs/ARCHITECTURE.md section 5): the maps of a batch are stacked vertically into
 one (B*h, w, C) texture per map; the result is a (B, K, h, w, 3) tensor.
 """
 

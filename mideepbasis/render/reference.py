@@ -1,6 +1,6 @@
 """The SVBRDF model and the flash render in plain torch: the independent cross-check.
 
-Nothing here calls drjit or Mitsuba. The formulas are those of DESIGN section 2, written
+Nothing here calls drjit or Mitsuba. The formulas are those of docs/ARCHITECTURE.md section 4, written
 a second time from the text, so that agreement with the plugin (``flash.py`` through
 ``bridge.py``) checks both. Tensors are (..., 3, H, W) or broadcast against it.
 """

@@ -116,7 +116,7 @@ def shape_scene(material, shape: str = "sphere", environment: str = "studio", ti
 def flash_scene(material, offset: tuple[float, float] = (0.0, 0.0), fov: float = constants.DEFAULT_FOV_DEG,
                 spp: int = constants.DEFAULT_SPP, resolution: int | None = None,
                 convention: str = constants.DEFAULT_CONVENTION) -> mi.Scene:
-    """The flash capture of DESIGN section 2 as a Mitsuba scene.
+    """The flash capture of docs/ARCHITECTURE.md section 3 as a Mitsuba scene.
 
     Args:
         material: a Material or a (10, H, W) tensor of stacked maps.

@@ -2,7 +2,7 @@
 
 Everything here works in the local shading frame of the surface, where the geometric
 normal is +z. The normal map gives a per-point normal ``n`` in that frame; the
-microfacet model is evaluated around ``n``. Two conventions exist (DESIGN section 2):
+microfacet model is evaluated around ``n``. Two conventions exist (docs/ARCHITECTURE.md section 4):
 
 ``physical``
     ``f = d / pi + D G F / (4 (n.l)(n.v))`` with GGX ``D``, the separable Smith ``G`` and

@@ -1,4 +1,5 @@
-"""The per-pixel flash path against the torch reference, a float64 transcription of DESIGN, and hand-made cases."""
+"""The per-pixel flash path against the torch reference, a float64 transcription of
+docs/ARCHITECTURE.md section 4, and hand-made cases."""
 
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ FORWARD_RTOL = {"physical": 1e-4, "deepbasis": 1e-4}
 
 
 def design_formula_float64(maps: np.ndarray, light: np.ndarray, fov_deg: float) -> np.ndarray:
-    """DESIGN section 2's `physical` formula in float64 numpy, for one (10, H, W) material -> (3, H, W)."""
+    """The `physical` formula of docs/ARCHITECTURE.md section 4 in float64 numpy, for one (10, H, W)
+    material -> (3, H, W)."""
     height, width = maps.shape[1:]
     camera_height = 1 / math.tan(math.radians(fov_deg) / 2)
     i, j = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")

@@ -1,5 +1,5 @@
 #version 300 es
-// The `physical` convention of DESIGN section 2, as render/shading.py and render/reference.py have
+// The `physical` convention of docs/ARCHITECTURE.md section 4, as render/shading.py and render/reference.py have
 // it, for one pixel of the sample plane seen from the fixed camera and lit by a point light
 // (flash mode), or lit by the prefiltered studio environment (environment mode).
 precision highp float;

@@ -11,9 +11,9 @@ wear, stains, fingerprints) are applied with their chances; the normals are comp
 relief. Values stay physically plausible: dielectrics have a grey F0 of about 0.02 to 0.08 and a
 coloured diffuse albedo, metals a coloured F0 and a dark diffuse albedo.
 
-(DESIGN section 4 names one module, ``data/procedural.py``; the generator grew into this
-package, importable under the same name: ``core`` has the primitives, ``families/`` one module
-per family, ``layers`` the weathering and mixing.)
+(A package rather than one module, for its twelve families (docs/ARCHITECTURE.md section 15):
+``core`` has the primitives, ``families/`` one module per family, ``layers`` the weathering and
+mixing.)
 """
 
 from __future__ import annotations
@@ -204,7 +204,8 @@ def generate(seed: int, size: int | None = None, family: str | None = None, tile
         config: the generator configuration.
 
     Returns:
-        a ``Material`` in DESIGN conventions (``physical``), with the recipe in its provenance.
+        a ``Material`` in the conventions of docs/ARCHITECTURE.md section 5 (``physical``), with the
+        recipe in its provenance.
     """
     overrides = {key: value for key, value in (("size", size), ("tileable", tileable)) if value is not None}
     if overrides:

@@ -8,7 +8,7 @@ without a seam. Frequencies are in cycles (or cells) per sample width.
 
 A family returns a ``Surface``: height [patch half-widths], linear diffuse and specular albedo and
 roughness, all (H, W[, 3]) float32 numpy arrays in image layout. Normals come from the height at
-the end (``height_to_normal``). The numbers follow DESIGN: the sample spans 2 patch half-widths
+the end (``height_to_normal``). The numbers follow docs/ARCHITECTURE.md section 3: the sample spans 2 patch half-widths
 (about 15 cm in a typical phone capture, so 1 mm of relief is about 0.013).
 
 Speed matters (at least 20 materials per second at 256^2 on one core), so noise is spectral
