@@ -91,8 +91,8 @@ def main() -> None:
                 train(config, progress=False)
                 timing.write_text(f"{time.perf_counter() - started:.1f}\n")
             summary = run_evaluation(EvaluationConfig(data=str(SHARED_TEST), format="deschaintre5",
-                                                      out=str(folder / "evaluation"), model=str(model),
-                                                      resolution=args.size), progress=False)
+                                                      out=str(folder / "evaluation"), overwrite=True,
+                                                      model=str(model), resolution=args.size), progress=False)
         rows[name] = {"maps_rmse": summary["maps_rmse"], "render_rmse": summary["render_rmse"],
                       "render_flip": summary["render_flip"],
                       "train_seconds": float(timing.read_text()) if timing.exists() else float("nan")}

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -142,13 +143,13 @@ def _photos(paths: list[Path]) -> list[Path]:
 def _run_capture(args) -> int:
     from .capture import CaptureConfig, Capturer
     from .configs import config_from_arguments
-    from .export import check_output, save_capture
+    from .export import save_capture
+    from .outputs import OutputFolder
 
     photos = _photos(args.photos)
     if not photos:
         raise InputError(f"no photos ({', '.join(PHOTO_SUFFIXES)}) in {', '.join(str(p) for p in args.photos)}")
     single = len(photos) == 1
-    check_output(args.output, args.overwrite)
     truth = None
     if args.truth is not None:
         from .material import Material
@@ -156,13 +157,20 @@ def _run_capture(args) -> int:
         if not single:
             raise InputError("--truth compares one capture with its true material: give one photo")
         truth = Material.load(args.truth)
+    inputs = photos + ([args.truth] if args.truth is not None else [])
     config = config_from_arguments(CaptureConfig, args)
     if not single:
         return _capture_batch(photos, args, config)
-    capturer = Capturer(args.model, config)
-    result = capturer.capture(photos[0], progress=True)
+    # Checked and locked before the work: a refusal comes first, and no other command writes it meanwhile.
+    folder = OutputFolder(args.output, overwrite=args.overwrite, inputs=inputs)
+    try:
+        capturer = Capturer(args.model, config)
+        result = capturer.capture(photos[0], progress=True)
+    except BaseException:
+        folder.abort()
+        raise
     result.output = None  # the network's tensors are not written; at 1024 px they hold 0.4 GB
-    save_capture(result, args.output, exr=args.exr, overwrite=args.overwrite, progress=True, truth=truth,
+    save_capture(result, folder, exr=args.exr, progress=True, truth=truth,
                  preview_tiles=args.preview_tiles, shape_previews=args.shape_previews is not False)
     if args.viewer_screenshot:
         _viewer_screenshot(args.output)
@@ -182,7 +190,7 @@ def _capture_batch(photos: list[Path], args, config) -> int:
     failures = 0
     options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles, shape_previews=bool(args.shape_previews))
     # Checked on the call, before the progress bar: a refusal is one line.
-    items = capture_batch(photos, args.output, args.model, config, options, args.workers)
+    items = capture_batch(photos, args.output, args.model, config, options, args.workers, overwrite=args.overwrite)
     for item in tqdm(items, total=len(photos), desc="capturing", unit="photo"):
         if item.error is not None:
             failures += 1
@@ -223,16 +231,21 @@ def _run_demo(args) -> None:
 
     from .capture import capture
     from .evaluation import light_error_deg, map_rmse
-    from .export import check_output, save_capture
+    from .export import save_capture
     from .material import Material
+    from .outputs import OutputFolder
     from .render.api import example_capture_dir
     from .resampling import downsample_maps
 
     folder = example_capture_dir()
     truth_light = json.loads((folder / "truth.json").read_text())
-    check_output(args.output, args.overwrite)  # before the work, and never a folder the user did not offer
-    result = capture(folder / "photo.jpg", model=args.model, progress=True)
-    save_capture(result, args.output, overwrite=args.overwrite, progress=True)
+    output = OutputFolder(args.output, overwrite=args.overwrite)  # before the work, and only what it wrote
+    try:
+        result = capture(folder / "photo.jpg", model=args.model, progress=True)
+    except BaseException:
+        output.abort()
+        raise
+    save_capture(result, output, progress=True)
     for note in result.notes:
         print(f"note: {note}")
     truth = Material.load(folder / "truth").to_tensor()[None]
@@ -264,8 +277,11 @@ def _run_data_preview(args) -> None:
 
     if args.family is not None and args.family not in FAMILIES:
         raise InputError(f"unknown family {args.family!r}; known: {', '.join(sorted(FAMILIES))}")
-    path = procedural_sheet(args.n, args.seed, args.output, size=args.size, tileable=args.tileable,
-                            family=args.family)
+    try:
+        path = procedural_sheet(args.n, args.seed, args.output, size=args.size, tileable=args.tileable,
+                                family=args.family)
+    except ValueError as error:  # the generator's own check of its settings (e.g. a size too small)
+        raise InputError(f"data preview: {error}") from None
     print(f"wrote {path}")
 
 
@@ -302,6 +318,7 @@ def _add_evaluate(subparsers) -> None:
     parser.add_argument("--environment-resolution", type=_positive_int, default=None,
                         help="size of the environment renders [pixels] (default 64)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
     parser.set_defaults(run=_run_evaluate)
 
 
@@ -312,7 +329,7 @@ def _run_evaluate(args) -> None:
     if not args.data.is_dir():
         raise InputError(f"{args.data}: no such dataset folder")
     environments = parse_environments(args.environment) if args.environment is not None else ()
-    config = EvaluationConfig(data=str(args.data), format=args.format, out=str(args.output),
+    config = EvaluationConfig(data=str(args.data), format=args.format, out=str(args.output), overwrite=args.overwrite,
                               model=str(args.model) if args.model else None, light=args.light,
                               refine_steps=args.refine_steps, refine_normals=args.refine_normals,
                               baselines=args.baselines,
@@ -395,9 +412,11 @@ def _run_train(args) -> None:
     path = train(dataclasses.replace(config, out=str(args.out)), resume=args.resume)
     if path.exists():
         print(f"wrote {path}")
-    else:
-        print(f"stopped before step {config.steps} (--max-minutes): continue with --resume; "
-              f"best weights so far in {args.out / 'best.safetensors'}")
+        return
+    best = args.out / "best.safetensors"
+    print(f"stopped before step {config.steps} (--max-minutes): continue with --resume"
+          + (f"; best weights so far in {best}" if best.exists() else
+             f"; the weights so far are in {checkpoint} (no validation ran: --validate-every 0)"))
 
 
 def build_parser(command: str | None = None, describe: bool = True) -> argparse.ArgumentParser:
@@ -448,6 +467,10 @@ def prepare_console_process() -> None:
     freeze_startup_objects()
 
 
+def _terminated(signal_number, frame) -> None:
+    raise SystemExit(128 + signal_number)
+
+
 def run() -> None:
     """The console command: ``main``, then a quick exit with its status.
 
@@ -459,6 +482,9 @@ def run() -> None:
     (``render.SKIP_PYTHON_INTEGRATORS``), which none of them uses.
     """
     prepare_console_process()
+    # A terminated command unwinds as an interrupted one does: its workers stopped, its staged
+    # output removed, the old output kept.
+    signal.signal(signal.SIGTERM, _terminated)
     status = main()
     sys.stdout.flush()
     sys.stderr.flush()

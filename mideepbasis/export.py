@@ -27,7 +27,6 @@ import json
 import math
 import os
 import queue
-import shutil
 import struct
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -38,6 +37,7 @@ import torch
 from . import constants
 from .errors import InputError
 from .imageio import background_writes, linear_to_srgb, write_bytes, write_image
+from .outputs import OutputFolder
 
 
 def _json_bytes(document: dict) -> bytes:
@@ -191,15 +191,6 @@ def specular_color(material, pbr: dict | None = None) -> tuple[torch.Tensor, flo
     return (specular / (constants.DIELECTRIC_F0 * factor)).clamp(0, 1), factor
 
 
-def check_output(out: Path, overwrite: bool) -> None:
-    """Refuse an output folder that exists and is not empty (unless ``overwrite``)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"output {out} exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError(f"output folder {out} exists and is not empty: choose another or pass --overwrite")
-
-
 #: Largest map side the path-traced previews are given [pixels]. A preview is 256 px wide and
 #: shows the sample smaller than that, so larger maps are area-averaged down first: the same
 #: picture with less aliasing, and at 2048 px 3 x 4 texture uploads of 16 MB fewer.
@@ -219,13 +210,15 @@ def preview_maps(maps: torch.Tensor, most: int = PREVIEW_MAP_SIZE) -> torch.Tens
     return downsample_maps(maps[None].float(), size)[0]
 
 
-def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: bool = False,
+def save_capture(result, out: str | os.PathLike | OutputFolder, exr: bool = False, overwrite: bool = False,
                  environment: str = "studio", environment_spp: int = constants.CAPTURE_PREVIEW_SPP,
                  environment_sampler: str = constants.CAPTURE_PREVIEW_SAMPLER,
                  progress: bool = False, truth=None, preview_tiles: float = 2.0,
                  shape_spp: int = constants.SHAPE_PREVIEW_SPP, shape_sampler: str = constants.SHAPE_PREVIEW_SAMPLER,
                  shape_previews: bool = True) -> Path:
-    """Write everything a capture gives (see the module docstring) into ``out``, atomically.
+    """Write everything a capture gives (see the module docstring) into ``out``, atomically: an
+    ``OutputFolder`` (checked and locked since before the capture), or a path made one here with
+    ``overwrite``. A kill at any instant leaves the old folder or the new one, whole.
 
     With ``truth`` (a Material the user has maps of), also ``environment_truth.png``: the true
     material path traced in the same scene with the same seed and samples, and
@@ -234,101 +227,98 @@ def save_capture(result, out: str | os.PathLike, exr: bool = False, overwrite: b
     cloth in the same environment, the maps repeated ``preview_tiles`` times across them (unless
     ``shape_previews`` is False: two path-traced images fewer).
     """
+    folder = out if isinstance(out, OutputFolder) else OutputFolder(out, overwrite=overwrite)
+    with folder:
+        _write_capture(result, folder.staging, exr, environment, environment_spp, environment_sampler, progress,
+                       truth, preview_tiles, shape_spp, shape_sampler, shape_previews)
+    return folder.target
+
+
+def _write_capture(result, staging: Path, exr: bool, environment: str, environment_spp: int,
+                   environment_sampler: str, progress: bool, truth, preview_tiles: float, shape_spp: int,
+                   shape_sampler: str, shape_previews: bool) -> None:
+    """The files of ``save_capture``, written into ``staging``."""
     from .render import render_flash
     from .render.scenes import preview_scene, render_preview, shape_scene
     from .reporting import report_sheet, write_report_page, write_report_sheet
 
-    out = Path(out)
-    check_output(out, overwrite)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir()
     # The MaterialX and USD files are written as text: loading pxr while the preview thread ran
     # deadlocked about one capture in ten (a library loaded beside running threads can).
     from .interchange import write_materialx, write_usd
-    try:
-        material = result.material
-        maps = material.to_tensor()[None]
-        # The re-rendering first, before the preview thread starts: drjit is then used by that
-        # thread alone.
-        with torch.no_grad():
-            rerender = render_flash(maps, result.light_position.view(1, 1, 3), fov=result.fov,
-                                    convention=material.convention)[0, 0]
-        shown = preview_maps(maps[0])
+    material = result.material
+    maps = material.to_tensor()[None]
+    # The re-rendering first, before the preview thread starts: drjit is then used by that
+    # thread alone.
+    with torch.no_grad():
+        rerender = render_flash(maps, result.light_position.view(1, 1, 3), fov=result.fov,
+                                convention=material.convention)[0, 0]
+    shown = preview_maps(maps[0])
 
-        finished: queue.SimpleQueue = queue.SimpleQueue()  # (file name, linear (H, W, 3)) of each preview, then None
+    finished: queue.SimpleQueue = queue.SimpleQueue()  # (file name, linear (H, W, 3)) of each preview, then None
 
-        rfilter = constants.PREVIEW_FILM_FILTER
+    rfilter = constants.PREVIEW_FILM_FILTER
 
-        def path_trace() -> None:
-            """The previews, each handed to ``finished`` as soon as it is traced."""
-            try:
-                scene = preview_scene(shown, environment=environment, spp=environment_spp,
-                                      convention=material.convention, sampler=environment_sampler, rfilter=rfilter)
-                finished.put(("environment", render_preview(scene, progress=progress)))
-                for shape in ("sphere", "cloth") if shape_previews else ():
-                    shape_view = shape_scene(shown, shape, environment, tiles=preview_tiles, spp=shape_spp,
-                                             convention=material.convention, sampler=shape_sampler, rfilter=rfilter)
-                    finished.put((f"preview_{shape}", render_preview(shape_view)))
-                if truth is not None:
-                    truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
-                                                spp=environment_spp, convention=material.convention,
-                                                sampler=environment_sampler, rfilter=rfilter)
-                    # The same seed as the capture's.
-                    finished.put(("environment_truth", render_preview(truth_scene, progress=progress)))
-            finally:
-                finished.put(None)  # also after a failure, which ``result()`` then raises
-
-        # The path tracing, the longest part, starts before every export: drjit lets go of the GIL
-        # while it traces, and the maps' encoding and writing (PNG and EXR on their own threads)
-        # and the other files run beside it. At 1024 px the exports before it had delayed it by 0.9 s.
-        with ThreadPoolExecutor(max_workers=1) as tracer, background_writes():
-            traced = tracer.submit(path_trace)
-            if exr:
-                material.save(staging, format="exr")
-            material.save(staging, format="png")
-            light = {"offset": list(result.offset), "offset_unit": "patch half-widths",
-                     "offset_angle_deg": result.offset_angle_deg,
-                     "offset_angles_deg": [math.degrees(math.atan(t / constants.camera_height(result.fov)))
-                                           for t in result.offset],
-                     "position": result.light_position.tolist(), "fov_deg": result.fov, "fov_source": result.fov_source,
-                     "searched": result.searched, "search": result.search_history}
-            write_bytes(staging / "light.json", _json_bytes(light))
-            error = (rerender.clamp(0, 1) - result.photo).abs()
-            # Clipped by torch on every core: NumPy's clip of the permuted views took 0.4 s at 2048 px.
-            write_image(staging / "photo.png", _hwc(result.photo.clamp(0, 1)), encode_srgb=True)
-            write_image(staging / "rerender.png", _hwc(rerender.clamp(0, 1)), encode_srgb=True)
-            write_image(staging / "error.png", _hwc((error * 4).clamp(0, 1)), encode_srgb=True)
-            (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width,
-                                                         material.convention))
-            pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
-            gltf = gltf_material(material, staging, pbr=pbr)
-            write_bytes(staging / "material.gltf", _json_bytes(gltf))
-            # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
-            write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
-            write_usd(staging)
-            rerender_rmse = float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt())
-            sheet = report_sheet(result, rerender, error, rerender_rmse)  # all but the environment panel
-            # Each preview, and the report with its environment panel, is encoded while the next traces.
-            images = {}
-            while (item := finished.get()) is not None:
-                name, images[name] = item
-                write_image(staging / f"{name}.png", images[name].clip(0, 1), encode_srgb=True)
-                if name == "environment":
-                    write_report_sheet(staging, sheet, images[name])
-            traced.result()
-            environment_image = images["environment"]
+    def path_trace() -> None:
+        """The previews, each handed to ``finished`` as soon as it is traced."""
+        try:
+            scene = preview_scene(shown, environment=environment, spp=environment_spp,
+                                  convention=material.convention, sampler=environment_sampler, rfilter=rfilter)
+            finished.put(("environment", render_preview(scene, progress=progress)))
+            for shape in ("sphere", "cloth") if shape_previews else ():
+                shape_view = shape_scene(shown, shape, environment, tiles=preview_tiles, spp=shape_spp,
+                                         convention=material.convention, sampler=shape_sampler, rfilter=rfilter)
+                finished.put((f"preview_{shape}", render_preview(shape_view)))
             if truth is not None:
-                difference = np.abs(linear_to_srgb(images["environment_truth"].clip(0, 1))
-                                    - linear_to_srgb(environment_image.clip(0, 1)))
-                write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
-        # The page reads the written maps (its relighting viewer embeds them): after the writes.
-        write_report_page(result, staging, rerender_rmse)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(staging, out)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return out
+                truth_scene = preview_scene(preview_maps(truth.to_tensor()), environment=environment,
+                                            spp=environment_spp, convention=material.convention,
+                                            sampler=environment_sampler, rfilter=rfilter)
+                # The same seed as the capture's.
+                finished.put(("environment_truth", render_preview(truth_scene, progress=progress)))
+        finally:
+            finished.put(None)  # also after a failure, which ``result()`` then raises
+
+    # The path tracing, the longest part, starts before every export: drjit lets go of the GIL
+    # while it traces, and the maps' encoding and writing (PNG and EXR on their own threads)
+    # and the other files run beside it. At 1024 px the exports before it had delayed it by 0.9 s.
+    with ThreadPoolExecutor(max_workers=1) as tracer, background_writes():
+        traced = tracer.submit(path_trace)
+        if exr:
+            material.save(staging, format="exr")
+        material.save(staging, format="png")
+        light = {"offset": list(result.offset), "offset_unit": "patch half-widths",
+                 "offset_angle_deg": result.offset_angle_deg,
+                 "offset_angles_deg": [math.degrees(math.atan(t / constants.camera_height(result.fov)))
+                                       for t in result.offset],
+                 "position": result.light_position.tolist(), "fov_deg": result.fov, "fov_source": result.fov_source,
+                 "searched": result.searched, "search": result.search_history}
+        write_bytes(staging / "light.json", _json_bytes(light))
+        error = (rerender.clamp(0, 1) - result.photo).abs()
+        # Clipped by torch on every core: NumPy's clip of the permuted views took 0.4 s at 2048 px.
+        write_image(staging / "photo.png", _hwc(result.photo.clamp(0, 1)), encode_srgb=True)
+        write_image(staging / "rerender.png", _hwc(rerender.clamp(0, 1)), encode_srgb=True)
+        write_image(staging / "error.png", _hwc((error * 4).clamp(0, 1)), encode_srgb=True)
+        (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width,
+                                                     material.convention))
+        pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
+        gltf = gltf_material(material, staging, pbr=pbr)
+        write_bytes(staging / "material.gltf", _json_bytes(gltf))
+        # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
+        write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
+        write_usd(staging)
+        rerender_rmse = float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt())
+        sheet = report_sheet(result, rerender, error, rerender_rmse)  # all but the environment panel
+        # Each preview, and the report with its environment panel, is encoded while the next traces.
+        images = {}
+        while (item := finished.get()) is not None:
+            name, images[name] = item
+            write_image(staging / f"{name}.png", images[name].clip(0, 1), encode_srgb=True)
+            if name == "environment":
+                write_report_sheet(staging, sheet, images[name])
+        traced.result()
+        environment_image = images["environment"]
+        if truth is not None:
+            difference = np.abs(linear_to_srgb(images["environment_truth"].clip(0, 1))
+                                - linear_to_srgb(environment_image.clip(0, 1)))
+            write_image(staging / "environment_difference.png", (difference * 4).clip(0, 1))
+    # The page reads the written maps (its relighting viewer embeds them): after the writes.
+    write_report_page(result, staging, rerender_rmse)

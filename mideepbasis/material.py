@@ -125,7 +125,8 @@ class Material:
         tol = constants.UNIT_NORMAL_TOLERANCE
         if ((length - 1).abs() > tol).any():
             raise MaterialError(
-                f"{src}: normals are not unit vectors (|n| in [{length.min():.4g}, {length.max():.4g}])"
+                f"{src}: normals are not unit vectors (|n| in [{length.min():.4g}, {length.max():.4g}]): "
+                "is the normal map a tangent-space one (a flat map is (128, 128, 255), not grey)?"
             )
         if (n.detach()[2] < -tol).any():
             raise MaterialError(f"{src}: normals point into the surface (min z = {n.detach()[2].min():.4g})")
@@ -510,6 +511,10 @@ def _encode(t: torch.Tensor, encoding: str) -> torch.Tensor:
     return linear_to_srgb(t) if encoding == "srgb" else t
 
 
+#: Shortest median length of a stored normal map's vectors that ``_decode`` renormalises.
+_SHORTEST_STORED_NORMAL = 0.5
+
+
 def _decode(t: torch.Tensor, encoding: str) -> torch.Tensor:
     """Stored values (C, H, W) under ``encoding`` -> the in-memory map.
 
@@ -525,8 +530,12 @@ def _decode(t: torch.Tensor, encoding: str) -> torch.Tensor:
         n = 2 * n - 1
         n[2] = torch.where((n[2] < 0) & (n[2] >= -_Z_QUANTUM), torch.zeros_like(n[2]), n[2])
         length = vector_length(n, dim=0, keepdim=True)
-        # Zero-length normals stay as they are, so that validation reports them.
-        n = torch.where(length > 1e-6, n / length.clamp(min=1e-6), n)
+        # Quantisation moves a unit vector's length by under 1 %. A map whose typical vector is
+        # much shorter (a flat grey (128, 128, 128) map is nearly zero) holds no normals: it stays
+        # as it is, so that validation reports it instead of reading arbitrary unit vectors; stray
+        # short pixels of a real normal map are renormalised (zero-length ones kept for validation).
+        if float(length.median()) > _SHORTEST_STORED_NORMAL:
+            n = torch.where(length > 1e-6, n / length.clamp(min=1e-6), n)
     if encoding.endswith("directx"):
         n[1] = -n[1]
     return n
@@ -541,6 +550,8 @@ def _read_meta(path: Path) -> tuple[str, dict[str, str], dict]:
         raise MaterialError(f"{src}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise MaterialError(f"{src}: cannot read ({exc})") from None
+    except RecursionError:
+        raise MaterialError(f"{src}: not a material description (its JSON nests too deeply)") from None
     if not isinstance(meta, dict) or meta.get("format") != _FORMAT_NAME:
         raise MaterialError(f"{src}: not a '{_FORMAT_NAME}' description")
     version = meta.get("version")

@@ -37,11 +37,15 @@ from . import constants, geometry
 from .configs import differences, positive_int
 from .data.procedural import GeneratorConfig
 from .data.synth import PHONE_LEVERS, SynthesisConfig, TrainingBatch, Variation, synthesize
-from .errors import InputError
-from .model.checkpoint import read_checkpoint, save_checkpoint
+from .errors import InputError, MideepbasisError
+from .model.checkpoint import CheckpointError, non_finite_tensors, previous_path, read_checkpoint, save_checkpoint
 from .model.inputs import RELIEF_DIRECTION_CHANNEL, decode_photo, octave_relief_inputs, relief_channels
 from .model.network import DeepBasisNet, DeepBasisOutput, NetworkConfig, add_slope, preset, to_signed
 from .model.symmetry import dihedral
+
+
+class TrainingDiverged(MideepbasisError):
+    """The loss became NaN or infinite; the last checkpoint on disk is kept."""
 
 
 @dataclass
@@ -897,6 +901,11 @@ class Trainer:
             raise InputError(f"{path}: this run was started with {name} = {before!r}, not {now!r} "
                              f"({len(changed)} setting(s) differ); resume with the run's settings, or start a "
                              "new run with --init")
+        broken = non_finite_tensors(tensors)
+        if broken:
+            raise CheckpointError(f"{path}: {len(broken)} of {len(tensors)} tensors hold NaN or infinite values "
+                                  f"(e.g. {broken[0]}): the file is damaged; the one saved before it is "
+                                  f"{previous_path(path).name}, if there (copy it over to resume from there)")
         weights = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
         self.model.load_state_dict(weights)
         _restore_optimizer(self.optimizer, self.parameter_names, tensors, state["optimizer_steps"])
@@ -922,7 +931,7 @@ class Trainer:
             "training": training, "training_state": {"step": self.step, "elapsed_seconds": self.elapsed,
                                                      "optimizer_steps": optimizer_steps,
                                                      "best_validation_score": self.best_score}},
-            extra_tensors={**optimizer_tensors, **extra})
+            extra_tensors={**optimizer_tensors, **extra}, keep_previous=True)
         if final:
             save_checkpoint(self.out / "model.safetensors", model, metadata={"training": training})
 
@@ -1106,21 +1115,26 @@ class Trainer:
             # process whose OpenMP threads have run can deadlock the child.
             self.validate()
         window_start, window_steps = time.monotonic(), 0
-        first_step_done, session_start_step = None, self.step
+        first_step_done, process_start_step = None, self.step
         while self.step < config.steps:
             out_of_time = config.max_minutes > 0 and time.monotonic() - started_run > 60 * config.max_minutes
             if out_of_time or (stop_at is not None and self.step >= stop_at):
                 if out_of_time:
-                    self._log_session_rate(session_start_step, first_step_done)
+                    self._log_process_rate(process_start_step, first_step_done)
                     self._final_validation()
                 self.save()
                 bar.close()
                 return
             started = time.monotonic()
             losses = self.train_step(next(iterator))
+            if not math.isfinite(losses["loss"]):  # the weights are lost: stop before they are saved
+                bar.close()
+                raise TrainingDiverged(f"{self.out}: training diverged at step {self.step}: the loss is not finite; "
+                                       f"{self.out / 'checkpoint.safetensors'} keeps the last good weights (resume "
+                                       "it, perhaps with a lower --lr)")
             self.elapsed += time.monotonic() - started
             if first_step_done is None:
-                first_step_done, session_start_step = time.monotonic(), self.step
+                first_step_done, process_start_step = time.monotonic(), self.step
             window_steps += 1
             bar.update(1)
             bar.set_postfix(loss=f"{losses['loss']:.4f}")
@@ -1135,7 +1149,7 @@ class Trainer:
                 self.save()
                 last_checkpoint = time.monotonic()
         bar.close()
-        self._log_session_rate(session_start_step, first_step_done)
+        self._log_process_rate(process_start_step, first_step_done)
         self._final_validation()
         self.save(final=True)
         if self.rank == 0:
@@ -1143,11 +1157,11 @@ class Trainer:
         if self.world_size > 1:
             dist.barrier()
 
-    def _log_session_rate(self, start_step: int, start_time: float | None) -> None:
+    def _log_process_rate(self, start_step: int, start_time: float | None) -> None:
         """Log this process's steps per second, from its first step (start-up excluded) to now."""
         if self.rank == 0 and start_time is not None and self.step > start_step:
             rate = (self.step - start_step) / max(1e-9, time.monotonic() - start_time)
-            self.log({"step": self.step, "session_steps_per_second": round(rate, 4)})
+            self.log({"step": self.step, "process_steps_per_second": round(rate, 4)})
 
     def _final_validation(self) -> None:
         """Validate the last weights too, unless this step was just validated."""

@@ -201,3 +201,44 @@ def test_the_options_help_is_their_fields_docstrings_when_help_is_asked_for(caps
         cli.main(["capture", "--help"])
     # SearchConfig.relaxation's docstring, folded by argparse.
     assert "How far a pass moves the light toward the best" in " ".join(capsys.readouterr().out.split())
+
+
+def test_bad_environment_material_and_preview_settings_are_one_line(material_dir, tmp_path, capsys):
+    text = tmp_path / "passwd"
+    text.write_text("root:x:0:0:root:/root:/bin/bash\n")
+    deep = tmp_path / "deep"
+    Material.load(material_dir).save(deep)
+    (deep / "material.json").write_text("[" * 100_000 + "]" * 100_000)
+    cases = [(["render", material_dir, "-o", tmp_path / "e.exr", "--light", "env", "--env", text], "not an image"),
+             (["render", deep, "-o", tmp_path / "d.exr"], "nests too deeply"),
+             (["data", "preview", "--n", "1", "--size", "1", "-o", tmp_path / "s.png"], "at least 8 pixels")]
+    for arguments, message in cases:
+        assert run(*arguments) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("mideepbasis: error:") and "\n" not in err and message in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["deep", "material", "passwd"]
+
+
+def test_a_grey_normal_map_is_refused_not_read_as_a_tilt(material_dir, tmp_path, capsys):
+    grey = tmp_path / "grey"
+    Material.load(material_dir).save(grey)
+    write_image(grey / "normal.png", np.full((24, 24, 3), 128 / 255, np.float32))
+    (grey / "normal.exr").unlink(missing_ok=True)
+    (grey / "material.json").unlink()  # PNG maps with the default encodings
+    for name in ("diffuse", "roughness", "specular"):
+        source = grey / f"{name}.exr"
+        if source.exists():
+            write_image(grey / f"{name}.png", read_image(source).clip(0, 1), encode_srgb=name == "diffuse")
+            source.unlink()
+    assert run("render", grey, "-o", tmp_path / "r.exr") == 2
+    err = capsys.readouterr().err.strip()
+    assert "not unit vectors" in err and "\n" not in err and not (tmp_path / "r.exr").exists()
+
+
+def test_an_import_error_is_one_clean_sentence(tmp_path, capsys):
+    weights = tmp_path / "g.pth"
+    weights.write_bytes(b"garbage\x1b[31mred\x07")
+    assert run("import-weights", weights, weights, "--fov", "45", "-o", tmp_path / "m.safetensors") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mideepbasis: error:") and all(c.isprintable() for c in err) and err.endswith((".)", ")"))
+    assert "\x1b" not in err and not (tmp_path / "m.safetensors").exists()

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from mideepbasis.errors import InputError
-from mideepbasis.export import check_output, gltf_material
+from mideepbasis.export import gltf_material
 from mideepbasis.imageio import read_image
 from mideepbasis.material import Material
 
@@ -35,12 +35,16 @@ def test_gltf_textures_hold_the_metallic_roughness_conversion(tmp_path):
 
 
 def test_an_occupied_output_folder_is_refused(tmp_path):
+    from mideepbasis.outputs import OutputFolder
+
     (tmp_path / "out").mkdir()
-    check_output(tmp_path / "out", overwrite=False)  # empty: fine
+    OutputFolder(tmp_path / "out", overwrite=False).abort()  # empty: fine
     (tmp_path / "out" / "mine.txt").write_text("keep")
     with pytest.raises(InputError, match="exists and is not empty"):
-        check_output(tmp_path / "out", overwrite=False)
-    check_output(tmp_path / "out", overwrite=True)
+        OutputFolder(tmp_path / "out", overwrite=False)
+    with pytest.raises(InputError, match="not written by mideepbasis"):  # not the tool's: kept
+        OutputFolder(tmp_path / "out", overwrite=True)
+    assert (tmp_path / "out" / "mine.txt").read_text() == "keep"
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="is not a folder"):
-        check_output(tmp_path / "file", overwrite=True)
+        OutputFolder(tmp_path / "file", overwrite=True)

@@ -8,6 +8,7 @@ import math
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -151,6 +152,73 @@ def test_the_command_line_resumes_with_the_stored_settings(tmp_path):
     config = document["training"]["config"]
     assert (config["steps"], config["network"]["num_bases"], config["synthesis"]["read_noise"]) == (2, 2, [1e-4, 2e-4])
     assert cli.main(["train", "--out", str(out), "--resume", "--steps", "3"]) == 2
+
+
+def test_a_resume_refuses_a_damaged_checkpoint_in_one_line(tmp_path, capsys):
+    """64 KiB of the tensor data overwritten with 0xFF (NaN in float32), the size kept: with its
+    checksum, and without one (as a checkpoint of an earlier version), the resume refuses."""
+    from mideepbasis import cli
+    from mideepbasis.model.checkpoint import METADATA_KEY
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+    from tests.model.test_checkpoint import damage
+
+    out = tmp_path / "cli"
+    common = ["train", "--out", str(out), "--preset", "tiny", "--batch", "1", "--size", "32", "--workers", "0",
+              "--validate-every", "0", "--log-every", "1"]
+    assert cli.main(common + ["--steps", "3", "--max-minutes", "1e-9"]) == 0
+    path = out / "checkpoint.safetensors"
+    good = path.read_bytes()
+    for checksum in (True, False):
+        path.write_bytes(good)
+        if not checksum:  # the same file as an earlier version wrote it: no checksum in the metadata
+            with safe_open(str(path), framework="pt") as handle:
+                document = json.loads(handle.metadata()[METADATA_KEY])
+                tensors = {name: handle.get_tensor(name) for name in handle.keys()}
+            del document["checksum"]
+            save_file(tensors, str(path), metadata={METADATA_KEY: json.dumps(document)})
+        damage(path)
+        damaged = path.read_bytes()
+        capsys.readouterr()
+        assert cli.main(["train", "--out", str(out), "--resume", "--max-minutes", "0"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("mideepbasis: error:") and "\n" not in err and str(path) in err
+        assert ("checksum" if checksum else "NaN or infinite") in err
+        assert path.read_bytes() == damaged and not (out / "model.safetensors").exists()
+
+
+def test_a_run_whose_loss_turns_non_finite_stops_and_keeps_its_last_checkpoint(tmp_path):
+    from mideepbasis.train import TrainingDiverged
+
+    run = Trainer(tiny_config(tmp_path, steps=6), progress=False)
+    run.run(stop_at=2)
+    path = tmp_path / "run" / "checkpoint.safetensors"
+    saved = path.read_bytes()
+    resumed = Trainer(tiny_config(tmp_path, steps=6, checkpoint_minutes=0.0), resume=True, progress=False)
+    real_step = resumed.train_step
+
+    def diverging(maps):
+        losses = real_step(maps)
+        with torch.no_grad():
+            for parameter in resumed.model.parameters():
+                parameter.fill_(float("nan"))
+        return {**losses, "loss": float("nan")}
+
+    resumed.train_step = diverging
+    with pytest.raises(TrainingDiverged, match="diverged at step 3"):
+        resumed.run()
+    assert path.read_bytes() == saved  # the NaN weights never replaced it
+
+
+def test_the_end_of_a_run_without_validation_names_files_that_exist(tmp_path, capsys):
+    from mideepbasis import cli
+
+    out = tmp_path / "cli"
+    assert cli.main(["train", "--out", str(out), "--preset", "tiny", "--batch", "1", "--size", "32", "--workers", "0",
+                     "--validate-every", "0", "--steps", "3", "--max-minutes", "1e-9"]) == 0
+    printed = capsys.readouterr().out
+    named = [word.rstrip(";)") for word in printed.split() if word.endswith((".safetensors", ".safetensors;"))]
+    assert named and all(Path(name).exists() for name in named), printed
 
 
 def test_two_processes_under_torchrun(tmp_path):

@@ -65,7 +65,25 @@ def default_workers(photos: int) -> int:
     return max(1, min(photos, os.cpu_count() or 1))
 
 
-def _start_worker(model, config, options: SaveOptions, workers: int) -> None:
+def die_with_parent(parent: int) -> None:
+    """Have the kernel kill this process when its parent ``parent`` dies, however it dies (Linux's
+    PR_SET_PDEATHSIG; elsewhere nothing), and end now if it is already gone."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (AttributeError, OSError):
+        return
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+
+#: prctl's request that a signal be sent to this process when its parent dies (linux/prctl.h).
+_PR_SET_PDEATHSIG = 1
+
+
+def _start_worker(model, config, options: SaveOptions, workers: int, parent: int) -> None:
     import signal
 
     import drjit as dr
@@ -73,6 +91,7 @@ def _start_worker(model, config, options: SaveOptions, workers: int) -> None:
 
     from .pipeline import Capturer
 
+    die_with_parent(parent)
     # Ctrl-C is the main process's to handle: it stops the workers itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # A share of the cores each for torch (one, with a worker per core): the workers, not the
@@ -91,9 +110,15 @@ def _capture_one(photo: Path, target: Path) -> BatchItem:
 
     from ..errors import MideepbasisError
     from ..export import save_capture
+    from ..outputs import OutputFolder
 
     started = time.perf_counter()
     options = _WORKER["options"]
+    try:
+        # Checked and locked before the work; a photo's folder is replaced only where the tool wrote it.
+        folder = OutputFolder(target, overwrite=options.overwrite, inputs=[photo])
+    except MideepbasisError as error:
+        return BatchItem(photo, target, error=str(error))
     try:
         # The capture's kernels are small (64 - 128 px renders): a second drjit thread mostly waits
         # for the first, and with two workers on two cores that waiting is the other photo's time
@@ -105,21 +130,30 @@ def _capture_one(photo: Path, target: Path) -> BatchItem:
         finally:
             dr.set_thread_count(_WORKER["drjit_threads"])
         result.output = None  # the network's tensors are not written: free them before the renders
-        save_capture(result, target, exr=options.exr, overwrite=options.overwrite,
-                     preview_tiles=options.preview_tiles, shape_previews=options.shape_previews)
-    except MideepbasisError as error:
-        return BatchItem(photo, target, error=str(error))
-    except Exception as error:  # noqa: BLE001 - one photo's failure (a full disk, a bug) is its own line
-        return BatchItem(photo, target, error=f"{type(error).__name__}: {error}")
+        save_capture(result, folder, exr=options.exr, preview_tiles=options.preview_tiles,
+                     shape_previews=options.shape_previews)
+    except BaseException as error:
+        folder.abort()  # after save_capture's own failure, nothing is left to do
+        if isinstance(error, MideepbasisError):
+            return BatchItem(photo, target, error=str(error))
+        if isinstance(error, Exception):  # one photo's failure (a full disk, a bug) is its own line
+            return BatchItem(photo, target, error=f"{type(error).__name__}: {error}")
+        raise
     return BatchItem(photo, target, offset_angle_deg=result.offset_angle_deg,
                      seconds=time.perf_counter() - started, notes=list(result.notes))
 
 
-def check_batch(photos: list[Path], out: Path, model=None) -> None:
-    """Refuse, before any work, a batch whose photos share a name (they would share ``out/<name>``)
-    or whose model does not load (the workers would each fail to start)."""
+def check_batch(photos: list[Path], out: Path, model=None, overwrite: bool = False) -> None:
+    """Refuse, before any work, a batch whose output folder may not be written (``outputs.check_target``;
+    not empty, without ``overwrite``), whose photos share a name (they would share ``out/<name>``)
+    or whose model does not load (the workers would each fail to start). Makes ``out``."""
     from ..errors import InputError
     from ..model.checkpoint import read_checkpoint, shipped_model_path
+    from ..outputs import check_target, probe_writable
+
+    check_target(out, photos)
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise InputError(f"output folder {out} exists and is not empty: choose another or pass --overwrite")
 
     seen: dict[str, Path] = {}
     for photo in photos:
@@ -128,10 +162,15 @@ def check_batch(photos: list[Path], out: Path, model=None) -> None:
                              "rename one or capture them separately")
         seen[photo.stem] = photo
     read_checkpoint(model if model is not None else shipped_model_path())
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise InputError(f"cannot make the folder {out}: {error.strerror or error}") from None
+    probe_writable(out)
 
 
 def capture_batch(photos: list[Path], out: Path, model=None, config=None, options: SaveOptions = SaveOptions(),
-                  workers: int | None = None) -> Iterator[BatchItem]:
+                  workers: int | None = None, overwrite: bool = False) -> Iterator[BatchItem]:
     """Capture every photo into ``out/<photo stem>/``; yields each outcome as it completes.
 
     Args:
@@ -142,12 +181,14 @@ def capture_batch(photos: list[Path], out: Path, model=None, config=None, option
         config: the ``CaptureConfig`` of every capture (None: the defaults).
         options: what is written per photo.
         workers: worker processes (None: one per core, at most one per photo).
+        overwrite: write into an ``out`` that is not empty (each photo's folder is replaced only
+            where the tool wrote it, ``outputs.OutputFolder``).
 
     Raises:
         InputError: photos that share a name, a model that does not load (on the call).
         MideepbasisError: a worker died (the batch cannot go on; while iterating).
     """
-    check_batch(photos, out, model)
+    check_batch(photos, out, model, overwrite)
     return _run_batch(photos, out, model, config, options, workers)
 
 
@@ -165,7 +206,7 @@ def _run_batch(photos: list[Path], out: Path, model, config, options: SaveOption
     # spawn, not fork: drjit's and torch's thread pools do not survive a fork.
     context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_start_worker,
-                               initargs=(model, config, options, workers))
+                               initargs=(model, config, options, workers, os.getpid()))
     try:
         # At most two photos queued per worker: results come back in order of completion.
         queue = iter(photos)

@@ -65,8 +65,9 @@ def procedural_sheet(count: int, seed: int, output: Path, size: int = 256, colum
 
     from .. import geometry
     from ..render import render_flash
-    from .procedural import generate
+    from .procedural import GeneratorConfig, generate
 
+    GeneratorConfig(size=size, tileable=tileable)  # its check of the settings, before the progress bar
     maps, labels = [], []
     for index in tqdm(range(count), desc="materials", disable=not progress):
         material = generate(seed + index, size=size, family=family, tileable=tileable)

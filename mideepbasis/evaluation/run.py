@@ -30,6 +30,9 @@ class EvaluationConfig:
     out: str = "evaluation"
     """Output folder."""
 
+    overwrite: bool = False
+    """Replace an existing, non-empty output folder (only one the tool wrote: ``outputs.OutputFolder``)."""
+
     model: str | None = None
     """Checkpoint of the model (None: the shipped one)."""
 
@@ -132,13 +135,22 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     """Evaluate a model (and baselines) on a dataset; writes OUT and returns the summary."""
     import time
 
+    from ..outputs import OutputFolder
+
+    started = time.perf_counter()
+    # Checked and locked before the work; written beside and swapped in whole at the end.
+    with OutputFolder(config.out, overwrite=config.overwrite, inputs=[config.data], kind="evaluation") as folder:
+        return _run_evaluation(config, folder.staging, started, progress)
+
+
+def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progress: bool) -> dict:
+    """``run_evaluation`` writing into ``out``."""
+    import time
+
     from ..capture import CaptureConfig
     from ..model.checkpoint import load_model
     from ..reporting import write_evaluation
 
-    started = time.perf_counter()
-    out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
     materials = load_evaluation_materials(config.data, config.format)
     names, truth, stored, skipped = materials.names, materials.maps, materials.stored, materials.skipped
     repaired = materials.repaired_pixels

@@ -17,6 +17,8 @@ import contextlib
 import dataclasses
 import json
 import os
+import re
+import zlib
 from importlib import resources
 from pathlib import Path
 
@@ -64,30 +66,68 @@ def network_config_from_dict(values: dict, source: str = "checkpoint") -> Networ
 
 
 def save_checkpoint(path: str | os.PathLike, model: torch.nn.Module, metadata: dict | None = None,
-                    extra_tensors: dict[str, torch.Tensor] | None = None) -> Path:
-    """Write ``model``'s weights, its configuration and ``metadata`` (JSON-able) atomically.
+                    extra_tensors: dict[str, torch.Tensor] | None = None, keep_previous: bool = False) -> Path:
+    """Write ``model``'s weights, its configuration, ``metadata`` (JSON-able) and the tensors'
+    checksum atomically; never weights that are not finite (the file on disk stays as it was).
 
     Args:
         path: the ``.safetensors`` file.
         model: a DeepBasisNet (or a DDP wrapper of one).
         metadata: more JSON for the document (``training``, ``convention`` overrides, ...).
         extra_tensors: more tensors (optimiser state, generator states), by name.
+        keep_previous: keep the file being replaced as ``previous_path(path)`` (a training run's
+            last good checkpoint, should this one be damaged on disk).
+
+    Raises:
+        CheckpointError: a tensor holds NaN or infinite values.
     """
     network = getattr(model, "module", model)
-    document = {"format": FORMAT, "version": FORMAT_VERSION, "network": network_config_to_dict(network.config),
-                "convention": network.config.convention, **(metadata or {})}
     tensors = {WEIGHTS_PREFIX + name: value.detach().contiguous().cpu() for name, value in network.state_dict().items()}
     for name, value in (extra_tensors or {}).items():
         tensors[name] = value.detach().contiguous().cpu()
     path = Path(path)
+    broken = non_finite_tensors(tensors)
+    if broken:
+        raise CheckpointError(f"{path}: not written: {len(broken)} of {len(tensors)} tensors hold NaN or infinite "
+                              f"values (e.g. {broken[0]}); the file there is kept as it was")
+    document = {"format": FORMAT, "version": FORMAT_VERSION, "network": network_config_to_dict(network.config),
+                "convention": network.config.convention, **(metadata or {}), "checksum": tensor_checksum(tensors)}
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    kept = path.with_name(f".{path.name}.previous-{os.getpid()}")
     try:
         save_file(tensors, str(temporary), metadata={METADATA_KEY: json.dumps(document)})
+        if keep_previous and path.exists():
+            # A second name for the old file first: at every instant ``path`` is the old file or the new one.
+            os.link(path, kept)
+            os.replace(kept, previous_path(path))
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
+        kept.unlink(missing_ok=True)
     return path
+
+
+def previous_path(path: str | os.PathLike) -> Path:
+    """Where ``save_checkpoint(keep_previous=True)`` keeps the checkpoint it replaced."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.previous{path.suffix}")
+
+
+def tensor_checksum(tensors: dict[str, torch.Tensor]) -> str:
+    """CRC-32 of the tensors' names, shapes, types and bytes, in the order of their names (hex)."""
+    checksum = 0
+    for name in sorted(tensors):
+        tensor = tensors[name].detach().contiguous().cpu()
+        checksum = zlib.crc32(f"{name}{tuple(tensor.shape)}{tensor.dtype}".encode(), checksum)
+        checksum = zlib.crc32(tensor.view(-1).view(torch.uint8).numpy() if tensor.numel() else b"", checksum)
+    return f"{checksum:08x}"
+
+
+def non_finite_tensors(tensors: dict[str, torch.Tensor]) -> list[str]:
+    """The names of the floating-point tensors that hold NaN or infinite values."""
+    return [name for name, tensor in tensors.items()
+            if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all())]
 
 
 def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict[str, torch.Tensor]]:
@@ -114,6 +154,8 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict[str, torch.Tens
     if document.get("version") != FORMAT_VERSION:
         raise CheckpointError(f"{path}: checkpoint format version {document.get('version')} is not supported "
                               f"(this mideepbasis reads version {FORMAT_VERSION})")
+    if "checksum" in document and tensor_checksum(tensors) != document["checksum"]:
+        raise CheckpointError(f"{path}: its tensors do not match their checksum: the file is damaged")
     return document, tensors
 
 
@@ -224,6 +266,14 @@ def authors_name_map(config: NetworkConfig) -> dict[str, str]:
     return names
 
 
+def _first_sentence(error: BaseException, most: int = 200) -> str:
+    """An error's first sentence, on one line, without terminal escapes or other control characters."""
+    text = re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", str(error))
+    text = " ".join("".join(c if c.isprintable() else " " for c in text).split())
+    sentence = re.split(r"(?<=[.!?])\s", text, maxsplit=1)[0]
+    return sentence if len(sentence) <= most else sentence[:most].rsplit(" ", 1)[0] + " ..."
+
+
 def _load_state_dict(path: Path) -> dict[str, torch.Tensor]:
     """A state dict from a .pth file, without ever unpickling anything but tensors and containers."""
     import pickle
@@ -233,8 +283,8 @@ def _load_state_dict(path: Path) -> dict[str, torch.Tensor]:
     try:
         loaded = torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError) as error:
-        first = " ".join(str(error).split())[:160]
-        raise CheckpointError(f"{path}: not a PyTorch state dict that loads without unpickling code ({first})") from None
+        raise CheckpointError(f"{path}: not a PyTorch state dict that loads without unpickling code "
+                              f"({_first_sentence(error)})") from None
     if isinstance(loaded, dict) and "params" in loaded and isinstance(loaded["params"], dict):
         loaded = loaded["params"]
     if not isinstance(loaded, dict) or not all(isinstance(v, torch.Tensor) for v in loaded.values()):

@@ -75,6 +75,12 @@ def environment_part(environment: str) -> dict:
     if not path.is_file():
         raise InputError(f"environment {environment!r} is neither {sorted(ENVIRONMENTS)}, "
                          f"{SUNSKY!r}, {UNIFORM!r} nor an existing file")
+    if environment not in ENVIRONMENTS:  # a user's file: read once here, so that a bad one is one line
+        try:
+            mi.Bitmap(str(path))
+        except RuntimeError:
+            raise InputError(f"environment {environment}: not an image Mitsuba can read "
+                             "(an equirectangular EXR, HDR, PNG or JPEG)") from None
     return {"env_part": "env_envmap.xml", "envmap": path.resolve()}
 
 

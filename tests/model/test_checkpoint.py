@@ -59,7 +59,10 @@ def test_loading_skips_the_random_initialisation_and_leaves_layers_built_later_i
 
 
 def rewrite(path, target, edit_document=None, drop=None):
+    """The checkpoint edited by hand and saved without a checksum, as a file made elsewhere would be
+    (with its checksum, a dropped tensor is reported as damage)."""
     document, _ = read_checkpoint(path)
+    document.pop("checksum")
     tensors = load_file(str(path))
     if edit_document:
         edit_document(document)
@@ -176,3 +179,44 @@ def test_shipping_a_checkpoint_keeps_its_weights_halves_the_parts_named_and_may_
         halved = name.startswith("normal_unit.")
         assert tensors[WEIGHTS_PREFIX + name].dtype == (torch.float16 if halved else value.dtype), name
         torch.testing.assert_close(model.state_dict()[name], value.half().float() if halved else value, atol=0, rtol=0)
+
+
+def damage(path, value: bytes = b"\xff", span: int = 64 * 1024) -> None:
+    """Overwrite up to ``span`` bytes of a safetensors file's tensor data (after its header), keeping its size."""
+    data = bytearray(path.read_bytes())
+    start = 8 + int.from_bytes(data[:8], "little")
+    end = min(len(data), start + span)
+    data[start:end] = value * (end - start)
+    path.write_bytes(bytes(data))
+
+
+def test_a_damaged_checkpoint_is_refused_by_its_checksum(saved):
+    _, path = saved
+    damage(path, b"\x00", span=256)  # zeros: finite values, found by the checksum alone
+    with pytest.raises(CheckpointError, match="do not match their checksum"):
+        read_checkpoint(path)
+    with pytest.raises(CheckpointError, match="checksum"):
+        load_model(path)
+
+
+def test_non_finite_weights_are_never_written(saved):
+    model, path = saved
+    before = path.read_bytes()
+    with torch.no_grad():
+        next(model.parameters()).view(-1)[0] = float("nan")
+    with pytest.raises(CheckpointError, match="NaN or infinite.*kept as it was"):
+        save_checkpoint(path, model)
+    assert path.read_bytes() == before
+
+
+def test_the_replaced_checkpoint_is_kept_beside_when_asked(tmp_path):
+    from mideepbasis.model.checkpoint import previous_path
+
+    torch.manual_seed(0)
+    first, second = DeepBasisNet(preset("tiny")).eval(), DeepBasisNet(preset("tiny")).eval()
+    path = save_checkpoint(tmp_path / "c.safetensors", first, keep_previous=True)
+    assert not previous_path(path).exists()
+    save_checkpoint(path, second, keep_previous=True)
+    kept = load_model(previous_path(path)).state_dict()
+    assert all(torch.equal(value, first.state_dict()[name]) for name, value in kept.items())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.previous.safetensors", "c.safetensors"]

@@ -26,7 +26,7 @@ import torch
 from ... import constants
 from ...material import Material
 from . import families as _families  # noqa: F401  (registers every family)
-from .core import Canvas, Surface, height_to_normal
+from .core import MIN_SIZE, Canvas, Surface, height_to_normal
 from .layers import mixing_mask, unevenness, weather
 from .registry import FAMILIES
 
@@ -107,6 +107,10 @@ class GeneratorConfig:
 
     darkening_scale: tuple[float, float] = (0.15, 1.0)
     """Range (log-uniform) of the factor on the diffuse albedo of a darker material."""
+
+    def __post_init__(self):
+        if self.size < MIN_SIZE:
+            raise ValueError(f"procedural materials need at least {MIN_SIZE} pixels, got {self.size}")
 
 
 def _family_names(config: GeneratorConfig) -> list[str]:

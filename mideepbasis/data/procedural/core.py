@@ -24,6 +24,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+#: Smallest side of a procedural material [pixels].
+MIN_SIZE = 8
+
 #: OpenCV 5 draws text into 8-bit images only (4.x, the pinned version, takes float32 too); a
 #: machine with another OpenCV, such as a GPU server's image, still generates the same families.
 _OPENCV_TEXT_NEEDS_BYTES = int(cv2.__version__.split(".")[0]) >= 5
@@ -125,8 +128,8 @@ class Canvas:
     FIXED_BAND = 64
 
     def __init__(self, size: int, rng: np.random.Generator, tileable: bool = False):
-        if size < 8:
-            raise ValueError(f"procedural materials need at least 8 pixels, got {size}")
+        if size < MIN_SIZE:
+            raise ValueError(f"procedural materials need at least {MIN_SIZE} pixels, got {size}")
         self.size, self.rng, self.tileable = size, rng, tileable
         axis = (np.arange(size, dtype=np.float32) + 0.5) / size
         self.u = np.broadcast_to(axis[None, :], (size, size))
