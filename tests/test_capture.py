@@ -748,3 +748,11 @@ def test_the_report_of_a_large_capture_shows_its_images_averaged_to_the_panel(tm
     # The ramps: linear red at the panel's middle row is about 0.5.
     middle = panel[panel.shape[0] // 2, 8:-8]
     assert abs(middle[:, 0].mean() - 0.735) < 0.03 and abs(middle[:, 1].mean() - 0.735) < 0.03
+
+
+def test_a_field_of_view_given_wins_over_the_exif_one(tmp_path):
+    path = photo_file(tmp_path, focal=28)
+    _, fov, source, _ = load_photo(path, fov=23.0, resolution=64)
+    assert (fov, source) == (23.0, "argument")
+    _, fov, source, _ = load_photo(path, resolution=64)
+    assert source == "exif" and fov == pytest.approx(field_of_view_from_focal(28, 96, 80))

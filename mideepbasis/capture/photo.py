@@ -78,12 +78,12 @@ def load_photo(path: str | Path, fov: float | None = None, resolution: int | str
     focal, note = (None, None) if path.suffix.lower() == ".exr" else read_focal_length_35mm(path)
     if note:
         notes.append(note)
-    if focal:
+    if fov is not None:  # what the user says wins over what the file says
+        used_fov, source = float(fov), "argument"
+    elif focal:
         # The lens saw the whole frame; the square used (its centre square, or a crop's) is part of it.
         used_fov, source = field_of_view_from_focal(focal, full_width, full_height, side), "exif"
         notes.append(f"field of view {used_fov:.1f} deg from the EXIF 35 mm-equivalent focal length {focal:g} mm")
-    elif fov is not None:
-        used_fov, source = float(fov), "argument"
     else:
         used_fov, source = constants.DEFAULT_FOV_DEG, "default"
         notes.append(f"no EXIF focal length: field of view {used_fov:g} deg assumed (set it with --fov)")

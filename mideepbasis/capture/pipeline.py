@@ -271,9 +271,12 @@ class Capturer:
 
     def load(self, path: str | Path) -> Photo:
         """Read a photo file (``capture.photo.load_photo``) with the model's photo decoding and the
-        field of view of the config, else of the model, else of the photo's EXIF or 45 deg."""
-        pixels, fov, source, notes = load_photo(path, self.requested_fov, self.config.resolution,
+        field of view of the config, else of the photo's EXIF, else of the model, else 45 deg."""
+        pixels, fov, source, notes = load_photo(path, self.config.fov, self.config.resolution,
                                                 decoding=self.model.info.photo_decoding, crop=self.config.crop)
+        if source == "default" and self.model.info.fov_deg:
+            fov, source = self.model.info.fov_deg, "model"
+            notes = [note for note in notes if not note.startswith("no EXIF focal length")]
         return Photo(pixels, fov, source, self._fov_notes(fov, notes))
 
     def photo_from_tensor(self, pixels: torch.Tensor) -> Photo:
