@@ -267,9 +267,11 @@ def authors_name_map(config: NetworkConfig) -> dict[str, str]:
 
 
 def _first_sentence(error: BaseException, most: int = 200) -> str:
-    """An error's first sentence, on one line, without terminal escapes or other control characters."""
+    """An error's telling sentence, on one line, without terminal escapes or other control
+    characters: torch's unpickler's own reason where its message holds one, else the first."""
     text = re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", str(error))
     text = " ".join("".join(c if c.isprintable() else " " for c in text).split())
+    text = text.split("WeightsUnpickler error: ", 1)[-1]
     sentence = re.split(r"(?<=[.!?])\s", text, maxsplit=1)[0]
     return sentence if len(sentence) <= most else sentence[:most].rsplit(" ", 1)[0] + " ..."
 
