@@ -269,6 +269,14 @@ def _add_data(subparsers) -> None:
     preview.add_argument("--tileable", action="store_true", help="make tileable materials")
     preview.add_argument("-o", "--output", type=Path, required=True, metavar="SHEET.png")
     preview.set_defaults(run=_run_data_preview)
+    scenes = commands.add_parser("scenes", help="calibrated scenes of procedural materials photographed as a phone "
+                                                "would: the real-photo protocol's validation set (evaluate --data)")
+    scenes.add_argument("--n", type=_positive_int, default=24, help="number of scenes")
+    scenes.add_argument("--seed", type=int, default=0, help="number of the first scene (the others follow)")
+    scenes.add_argument("--size", type=_positive_int, default=256, help="side of the photos [pixels]")
+    scenes.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
+    scenes.add_argument("--overwrite", action="store_true", help="replace an existing OUT that the tool wrote")
+    scenes.set_defaults(run=_run_data_scenes)
 
 
 def _run_data_preview(args) -> None:
@@ -285,6 +293,15 @@ def _run_data_preview(args) -> None:
     print(f"wrote {path}")
 
 
+def _run_data_scenes(args) -> None:
+    from .data.scenes import make_scenes
+    from .outputs import OutputFolder
+
+    with OutputFolder(args.output, overwrite=args.overwrite, kind="scenes") as folder:
+        make_scenes(folder.staging, args.n, args.seed, args.size)
+    print(f"wrote {args.n} calibrated scenes into {args.output}")
+
+
 def _add_evaluate(subparsers) -> None:
     parser = subparsers.add_parser(
         "evaluate", help=COMMAND_HELP["evaluate"],
@@ -292,7 +309,11 @@ def _add_evaluate(subparsers) -> None:
                     "RMSE in the stored encoding; re-rendering RMSE, FLIP, SSIM (and LPIPS when its weights are on "
                     "this machine) under 30 seeded random lights and views.")
     parser.add_argument("--data", type=Path, required=True, help="dataset folder")
-    parser.add_argument("--format", choices=["deschaintre5", "deschaintre4", "folder"], default="deschaintre5")
+    parser.add_argument("--format", choices=["deschaintre5", "deschaintre4", "folder", "calibrated"], default=None,
+                        help="dataset layout (default: calibrated where the folder holds calibrated scenes, "
+                             "else deschaintre5)")
+    parser.add_argument("--input-photo", default="0", metavar="N|all",
+                        help="calibrated scenes: the photo captured from, or all in turn (default 0)")
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--light", choices=["known", "search"], default="known")
     parser.add_argument("--refine-steps", type=int, default=0,
@@ -325,11 +346,16 @@ def _add_evaluate(subparsers) -> None:
 def _run_evaluate(args) -> None:
     from .evaluation import EvaluationConfig, run_evaluation
     from .evaluation.environment import parse_environments
+    from .evaluation.real import is_calibrated
 
     if not args.data.is_dir():
         raise InputError(f"{args.data}: no such dataset folder")
     environments = parse_environments(args.environment) if args.environment is not None else ()
-    config = EvaluationConfig(data=str(args.data), format=args.format, out=str(args.output), overwrite=args.overwrite,
+    data_format = args.format or ("calibrated" if is_calibrated(args.data) else "deschaintre5")
+    if args.input_photo != "all" and not args.input_photo.isdigit():
+        raise InputError(f"--input-photo must be a photo number or 'all', got {args.input_photo!r}")
+    config = EvaluationConfig(data=str(args.data), format=data_format, out=str(args.output), overwrite=args.overwrite,
+                              input_photo=args.input_photo if args.input_photo == "all" else int(args.input_photo),
                               model=str(args.model) if args.model else None, light=args.light,
                               refine_steps=args.refine_steps, refine_normals=args.refine_normals,
                               baselines=args.baselines,
@@ -343,6 +369,9 @@ def _run_evaluate(args) -> None:
     print((args.output / "table.md").read_text())
     for note in summary["notes"]:
         print(f"note: {note}")
+    if data_format == "calibrated":
+        print(f"{summary['n_scenes']} scenes in {summary['seconds']:.0f} s; wrote {args.output}")
+        return
     print(f"{summary['n_materials']} materials ({summary['skipped']} skipped) in {summary['seconds']:.0f} s; "
           f"wrote {args.output}")
 

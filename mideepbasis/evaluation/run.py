@@ -25,7 +25,11 @@ class EvaluationConfig:
     """Dataset path [folder]."""
 
     format: str = "deschaintre5"
-    """``deschaintre5``, ``deschaintre4`` (strips) or ``folder`` (material folders or PBR maps)."""
+    """``deschaintre5``, ``deschaintre4`` (strips), ``folder`` (material folders or PBR maps) or
+    ``calibrated`` (real photos at calibrated positions: the real-photo protocol, ``evaluation.real``)."""
+
+    input_photo: int | str = 0
+    """``calibrated``: the photo of each scene the material is captured from, or ``all``: each in turn."""
 
     out: str = "evaluation"
     """Output folder."""
@@ -140,6 +144,10 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     started = time.perf_counter()
     # Checked and locked before the work; written beside and swapped in whole at the end.
     with OutputFolder(config.out, overwrite=config.overwrite, inputs=[config.data], kind="evaluation") as folder:
+        if config.format == "calibrated":
+            from .real import run_real_evaluation
+
+            return run_real_evaluation(config, folder.staging, progress)
         return _run_evaluation(config, folder.staging, started, progress)
 
 
