@@ -5,10 +5,11 @@ Each scene is one procedural material (seeds far from any training material's) p
 times by one phone: a field of view drawn as ``SynthesisConfig.fov_range`` draws it, the first
 photo a hand-held shot near the centre, the eight others from around it (flash angles up to the
 hand-held limit, heights within -8 / +12 % of the first). Every photo goes through the same camera
-(``data.synth``: white-balance cast, tone curve, vignetting, flash cone, tilt, noise, 8-bit,
-JPEG), rendered at twice the photos' size and area-averaged. A scene is written in the layout
-of the real calibrated scenes, with its true material in ``truth/`` (its diffuse as the camera
-sees it, with the white balance's cast: what re-renders the photos).
+(``data.synth``: white-balance cast, tone curve, vignetting, flash cone, noise, 8-bit, JPEG),
+rendered at twice the photos' size and area-averaged. The positions are those of the sample's own
+frame, as a calibration measures them: no tilt. A scene is written in the layout of the real
+calibrated scenes, with its true material in ``truth/`` as the camera sees it (diffuse and
+specular with the white balance's cast: what re-renders the photos).
 
 Shapes: maps (10, H, W); positions (9, 3) [patch half-widths], written in cm.
 """
@@ -23,7 +24,7 @@ import torch
 
 from .. import constants, geometry
 from .synth import (PHONE_PHOTOS, SynthesisConfig, colour_cast, flash_cone_falloff, sample_camera, sample_fov,
-                    sample_offsets, simulate_photo, tilt_normals)
+                    sample_offsets, simulate_photo)
 
 #: Seeds of the scenes' materials start here: far from training (material i of a run) and from
 #: the training validation (10^9 + i).
@@ -62,15 +63,12 @@ def photograph_scene(maps: torch.Tensor, positions: torch.Tensor, generator: tor
     count = len(positions)
     camera = sample_camera(1, generator, config)
     seen, truth = maps[None].clone(), maps[None].clone()
-    if config.cast_in_diffuse:
+    if config.cast_in_diffuse:  # the camera's colours: what re-renders its photos
         brightness, cast = colour_cast(camera.gains)
         camera.gains = brightness
-        truth[:, constants.DIFFUSE] = (truth[:, constants.DIFFUSE] * cast.view(1, 3, 1, 1)).clamp(0.0, 1.0)
-        seen[:, constants.DIFFUSE] = truth[:, constants.DIFFUSE]
-        seen[:, constants.SPECULAR] = seen[:, constants.SPECULAR] * cast.view(1, 3, 1, 1)
-    if config.tilt_deg > 0:
-        angle = torch.deg2rad(torch.rand(1, generator=generator) * config.tilt_deg)
-        seen = tilt_normals(seen, angle, torch.rand(1, generator=generator) * 2 * math.pi)
+        for channels in (constants.DIFFUSE, constants.SPECULAR):
+            truth[:, channels] = (truth[:, channels] * cast.view(1, 3, 1, 1)).clamp(0.0, 1.0)
+        seen = truth.clone()
     intensity = math.pi * float(positions[0, 2]) ** 2
     with torch.no_grad():
         radiance = render_flash(seen, positions[None], intensity=intensity, convention=config.convention)[0]
