@@ -302,74 +302,37 @@ def _run_data_scenes(args) -> None:
     print(f"wrote {args.n} calibrated scenes into {args.output}")
 
 
-def _add_evaluate(subparsers) -> None:
+def _add_evaluate(subparsers, describe: bool = True) -> None:
+    from .configs import add_config_arguments
+    from .evaluation import EvaluationConfig
+
     parser = subparsers.add_parser(
         "evaluate", help=COMMAND_HELP["evaluate"],
-        description="Inputs re-rendered from the ground-truth maps under a seeded hand-held flash per material; map "
-                    "RMSE in the stored encoding; re-rendering RMSE, FLIP, SSIM (and LPIPS when its weights are on "
-                    "this machine) under 30 seeded random lights and views.")
+        description="Synthetic data (the paper's protocol): inputs re-rendered from the ground-truth maps under a "
+                    "seeded hand-held flash per material; map RMSE in the stored encoding; re-rendering RMSE, FLIP, "
+                    "SSIM (and LPIPS when its weights are on this machine) under 30 seeded random lights and views. "
+                    "Calibrated real scenes (the paper's Table 2): the material captured from one photo re-renders "
+                    "the others (docs/ARCHITECTURE.md section 13).")
     parser.add_argument("--data", type=Path, required=True, help="dataset folder")
-    parser.add_argument("--format", choices=["deschaintre5", "deschaintre4", "folder", "calibrated"], default=None,
-                        help="dataset layout (default: calibrated where the folder holds calibrated scenes, "
-                             "else deschaintre5)")
-    parser.add_argument("--input-photo", default="0", metavar="N|all",
-                        help="calibrated scenes: the photo captured from, or all in turn (default 0)")
-    parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
-    parser.add_argument("--light", choices=["known", "search"], default="known")
-    parser.add_argument("--refine-steps", type=int, default=0,
-                        help="refine the model's row (with --baselines: the refined row; default then: capture's)")
-    parser.add_argument("--refine-normals", action="store_true",
-                        help="let the refinement turn the global bases' normals too (the paper's refinement)")
-    parser.add_argument("--baselines", action="store_true", help="also trivial, direct, unrefined and refined rows")
-    parser.add_argument("--direct-model", type=Path, default=None, help="checkpoint of the direct (no bases) network")
-    parser.add_argument("--lighting", action="store_true", help="lighting-search accuracy and robustness to the offset")
-    parser.add_argument("--network-resolution", type=int, default=None, metavar="N",
-                        help="largest resolution the network runs at [pixels] (default: the model's training "
-                             "resolution; 0: the materials' own)")
-    parser.add_argument("--symmetries", type=int, choices=[1, 2, 4, 8], default=None,
-                        help="average the prediction over this many turns and mirrorings of each photo "
-                             "(default: capture's)")
-    parser.add_argument("--limit", type=_positive_int, default=None, help="only the first N materials")
-    parser.add_argument("--resolution", type=_positive_int, default=None, help="resample the materials first [pixels]")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--environment", default=None, metavar="studio,sunsky[,FILE.exr]",
-                        help="also compare path-traced renders under these environments (with a noise floor)")
-    parser.add_argument("--environment-spp", type=_positive_int, default=None,
-                        help="samples per pixel of the environment renders (default 256)")
-    parser.add_argument("--environment-resolution", type=_positive_int, default=None,
-                        help="size of the environment renders [pixels] (default 64)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
+    # Every other EvaluationConfig field is an option (--refine-steps, --symmetries, ...), documented by the field.
+    add_config_arguments(parser, EvaluationConfig, skip={"data", "out"}, defaults=EvaluationConfig(data=""),
+                         describe=describe)
     parser.set_defaults(run=_run_evaluate)
 
 
 def _run_evaluate(args) -> None:
+    from .configs import config_from_arguments
     from .evaluation import EvaluationConfig, run_evaluation
-    from .evaluation.environment import parse_environments
-    from .evaluation.real import is_calibrated
 
     if not args.data.is_dir():
         raise InputError(f"{args.data}: no such dataset folder")
-    environments = parse_environments(args.environment) if args.environment is not None else ()
-    data_format = args.format or ("calibrated" if is_calibrated(args.data) else "deschaintre5")
-    if args.input_photo != "all" and not args.input_photo.isdigit():
-        raise InputError(f"--input-photo must be a photo number or 'all', got {args.input_photo!r}")
-    config = EvaluationConfig(data=str(args.data), format=data_format, out=str(args.output), overwrite=args.overwrite,
-                              input_photo=args.input_photo if args.input_photo == "all" else int(args.input_photo),
-                              model=str(args.model) if args.model else None, light=args.light,
-                              refine_steps=args.refine_steps, refine_normals=args.refine_normals,
-                              baselines=args.baselines,
-                              direct_model=str(args.direct_model) if args.direct_model else None,
-                              lighting=args.lighting, seed=args.seed, limit=args.limit, resolution=args.resolution,
-                              network_resolution=args.network_resolution, symmetries=args.symmetries,
-                              environment=environments,
-                              environment_spp=args.environment_spp,
-                              environment_resolution=args.environment_resolution)
+    config = config_from_arguments(EvaluationConfig, args, EvaluationConfig(data=str(args.data), out=str(args.output)))
     summary = run_evaluation(config)
     print((args.output / "table.md").read_text())
     for note in summary["notes"]:
         print(f"note: {note}")
-    if data_format == "calibrated":
+    if config.data_format == "calibrated":
         print(f"{summary['n_scenes']} scenes in {summary['seconds']:.0f} s; wrote {args.output}")
         return
     print(f"{summary['n_materials']} materials ({summary['skipped']} skipped) in {summary['seconds']:.0f} s; "
@@ -468,7 +431,7 @@ def build_parser(command: str | None = None, describe: bool = True) -> argparse.
 
 
 #: The sub-commands whose options are made from config fields (their help read from the source).
-_DESCRIBED_COMMANDS = ("capture", "train")
+_DESCRIBED_COMMANDS = ("capture", "evaluate", "train")
 
 
 def main(argv: list[str] | None = None) -> int:

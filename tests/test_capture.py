@@ -347,7 +347,9 @@ def test_refinement_can_keep_the_normals_and_be_pulled_to_the_prediction():
 REFINE_LOOP_TOLERANCES = {"bases": 2e-3, "loss": 1e-5}
 
 
-@pytest.mark.parametrize("options", [{"normals": False}, {"normals": True}, {"normals": False, "prior": 0.5}])
+@pytest.mark.parametrize("options", [{"normals": False}, {"normals": True}, {"normals": False, "prior": 0.5},
+                                     {"skip_clipped": True, "achromatic_specular": True},
+                                     {"normals": True, "achromatic_specular": True}])
 def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
     from mideepbasis.capture import refine as refinement
 
@@ -355,14 +357,20 @@ def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
     photos, lights = flash_photos(truth, torch.tensor([[0.2, 0.1]]))
     output = OracleModel(truth)(None)
     wrong = torch.tensor([0.3, -0.2, 0.0, 0.3, -0.2, 0.25, 0.4, -0.3, 0.2, 0.1]).view(1, 1, 10)
-    output = replace(output, global_bases=output.global_bases + wrong)
     config = RefineConfig(steps=80, resolution=32, lr=0.02, **options)
+    if config.achromatic_specular:  # the same error in the three: a dielectric's specular stays one
+        wrong[..., 7:] = 0.2
+    output = replace(output, global_bases=output.global_bases + wrong)
     weights, deviations = refinement.refinement_inputs(output, config.resolution)
     target = refinement.downsample(photos, config.resolution)
     predicted = output.global_bases.detach()
     movable = torch.ones(10)
     movable[:3] = float(config.normals)
-    arguments = (weights, deviations, predicted, movable, target, lights[0], 45.0, "physical", 1.0, config, False)
+    settings = refinement.loss_settings(photos[0] * 3.0, predicted, config)  # x 3: some pixels clip
+    arguments = (weights, deviations, predicted, movable, target, lights[0], 45.0, "physical", 1.0, config, False,
+                 *settings)
+    if config.skip_clipped:
+        assert 0 < int((settings[0] == 0).sum()) < settings[0].numel() // 2
     reference, reference_losses = refinement._fit_torch(*arguments)
     for _ in range(2):  # recorded at the first call, replayed at the second
         bases, losses = refinement._fit_drjit(*arguments)
@@ -371,6 +379,23 @@ def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
     assert (reference - predicted).abs().max() > 0.05  # the bases moved
     if not config.normals:
         assert torch.equal(bases[..., :3], predicted[..., :3])
+    if config.achromatic_specular:  # the specular moved by one shift in all three channels
+        shift = (bases - predicted)[0, 0, 7:]
+        assert shift.abs().max() > 0.01 and (shift - shift.mean()).abs().max() < 1e-4
+
+
+def test_speculars_tie_unless_a_metal_s():
+    from mideepbasis.capture.refine import tie_specular_gradient, tied_speculars
+
+    bases = torch.zeros(3, 10)
+    bases[0, 7:] = torch.tensor([-0.9, -0.9, -0.88])  # a dielectric's F0 (0.05, 0.05, 0.06)
+    bases[1, 7:] = torch.tensor([0.8, 0.4, -0.2])  # gold-like: a metal's
+    bases[2, 7:] = torch.tensor([0.5, 0.5, 0.5])  # a grey metal: no colour to keep
+    assert tied_speculars(bases).tolist() == [True, False, True]
+    gradient = torch.arange(30.0).view(1, 3, 10)
+    tied = tie_specular_gradient(gradient, torch.tensor([True, False, False]))
+    assert tied[0, 0, 7:].tolist() == [8.0, 8.0, 8.0] and torch.equal(tied[0, 1:], gradient[0, 1:])
+    assert torch.equal(tied[0, 0, :7], gradient[0, 0, :7])
 
 
 def test_the_refinement_keeping_the_normals_renders_them_blended_once_with_the_same_result():

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from mideepbasis.capture import RefineConfig
 from mideepbasis.evaluation import (EvaluationConfig, light_error_deg, map_rmse, random_lights_and_views, rerender_rmse,
                                     run_evaluation, ssim, trivial_baseline)
 
@@ -67,7 +68,7 @@ def test_evaluation_is_seeded_and_skips_a_corrupt_material(evaluation_dataset, t
     summaries = []
     for run in ("a", "b"):
         config = EvaluationConfig(data=str(folder), format="folder", out=str(tmp_path / run), model=str(model),
-                                  baselines=True, refine_steps=3)
+                                  baselines=True, refine=RefineConfig(steps=3))
         with pytest.warns(UserWarning, match="skipping"):
             summaries.append(run_evaluation(config, progress=False))
     a, b = summaries

@@ -48,6 +48,23 @@ class RefineConfig:
     prior: float = 0.0
     """Weight of the L1 pull of the refined global bases toward the network's (0: none)."""
 
+    skip_clipped: bool = False
+    """Leave the photo's clipped pixels (a channel at or above ``CLIPPED``, linear) out of the
+    loss: they say only that the surface was at least that bright."""
+
+    achromatic_specular: bool = False
+    """Move each basis's three specular channels together, by one shift, so that the refinement
+    cannot tint a dielectric's highlight with the photo's colour processing; a basis the network
+    made a metal's (its specular's channels spread over ``METAL_SPREAD``) moves them apart."""
+
+
+#: Linear photo values at or above this are clipped (``RefineConfig.skip_clipped``).
+CLIPPED = 0.98
+
+#: Spread (largest minus smallest channel, [0, 1]) of a basis's specular above which it is a
+#: metal's, whose colour the refinement may change (``RefineConfig.achromatic_specular``).
+METAL_SPREAD = 0.08
+
 
 class SmallAdam:
     """Adam (Kingma and Ba 2015) for one small tensor, the update of ``torch.optim.Adam``'s
@@ -143,12 +160,44 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     if not config.normals:
         movable[constants.NORMAL] = 0.0
     fit = _fit_drjit if render_backend() == "mitsuba" else _fit_torch
-    return fit(weights, deviations, predicted, movable, target, light, fov, convention, extent, config, progress)
+    return fit(weights, deviations, predicted, movable, target, light, fov, convention, extent, config, progress,
+               *loss_settings(photo, predicted, config))
+
+
+def loss_settings(photo: torch.Tensor, predicted: torch.Tensor, config: RefineConfig
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(each pixel's weight in the loss (1, r, r), mean 1: 0 at clipped pixels with
+    ``skip_clipped``; whether each basis's specular channels move together (N,) with
+    ``achromatic_specular``) for the photo (3, H, W) and the predicted bases (1, N, 10)."""
+    resolution = config.resolution
+    pixel_weights = torch.ones(1, resolution, resolution)
+    if config.skip_clipped:  # a refinement pixel with any clipped photo pixel in it is left out
+        clipped = downsample((photo[None] >= CLIPPED).float(), resolution).amax(dim=1) > 0
+        unclipped = (~clipped).float()
+        pixel_weights = unclipped / unclipped.mean().clamp(min=1.0 / unclipped.numel())
+    tied = (tied_speculars(predicted[0]) if config.achromatic_specular
+            else torch.zeros(predicted.shape[1], dtype=torch.bool))
+    return pixel_weights, tied
+
+
+def tied_speculars(global_bases: torch.Tensor) -> torch.Tensor:
+    """(N,) whether each of the global bases (N, 10) (signed space) keeps its specular's three
+    channels moving together: those whose specular is not a metal's (``METAL_SPREAD``)."""
+    specular = global_bases[:, constants.SPECULAR] * 0.5 + 0.5
+    return (specular.amax(dim=1) - specular.amin(dim=1)) <= METAL_SPREAD
+
+
+def tie_specular_gradient(gradient: torch.Tensor, tied: torch.Tensor) -> torch.Tensor:
+    """The gradient (1, N, 10) with each tied basis's three specular entries replaced by their mean."""
+    tied_mean = gradient[:, :, constants.SPECULAR].mean(dim=2, keepdim=True).expand(-1, -1, 3)
+    specular = torch.where(tied.view(1, -1, 1), tied_mean, gradient[:, :, constants.SPECULAR])
+    return torch.cat([gradient[:, :, :constants.SPECULAR.start], specular], dim=2)
 
 
 def _fit_drjit(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch.Tensor, movable: torch.Tensor,
                target: torch.Tensor, light: torch.Tensor, fov: float, convention: str, extent: float,
-               config: RefineConfig, progress: bool) -> tuple[torch.Tensor, list[float]]:
+               config: RefineConfig, progress: bool, pixel_weights: torch.Tensor,
+               tied: torch.Tensor) -> tuple[torch.Tensor, list[float]]:
     """The refinement's loop as one frozen drjit step (``render.fit``): the Mitsuba backend's."""
     from tqdm import tqdm
 
@@ -158,13 +207,15 @@ def _fit_drjit(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
     bar = (lambda steps: tqdm(steps, desc="refining", unit="step")) if progress else None
     refined, losses = fit_global_bases(weights[0].numpy(), deviations[0].numpy(), predicted[0].numpy(), movable.numpy(),
                                        target[0].numpy(), light.numpy(), geometry.flash_intensity(fov, convention),
-                                       convention, extent, config.steps, config.lr, config.prior, progress=bar)
+                                       convention, extent, config.steps, config.lr, config.prior, progress=bar,
+                                       pixel_weights=pixel_weights[0].numpy(), tied=tied.numpy())
     return torch.from_numpy(refined)[None], losses
 
 
 def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch.Tensor, movable: torch.Tensor,
                target: torch.Tensor, light: torch.Tensor, fov: float, convention: str, extent: float,
-               config: RefineConfig, progress: bool) -> tuple[torch.Tensor, list[float]]:
+               config: RefineConfig, progress: bool, pixel_weights: torch.Tensor,
+               tied: torch.Tensor) -> tuple[torch.Tensor, list[float]]:
     """The refinement's loop in torch, rendering through ``render_flash`` (the torch backend's;
     the reference of ``_fit_drjit``)."""
     from tqdm import tqdm
@@ -200,11 +251,13 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
             current = masked(global_bases)
             maps = to_maps(blended(current))
             rendered = render_flash(maps, lights, fov=fov, convention=convention, extent=extent)[:, 0].clamp(0.0, 1.0)
-            loss = (rendered - target).abs().mean()
+            loss = ((rendered - target).abs() * pixel_weights).mean()
             if config.prior:
                 loss = loss + config.prior * (current - predicted).abs().mean()
             global_bases.grad = None
             loss.backward()
+            if bool(tied.any()):
+                global_bases.grad = tie_specular_gradient(global_bases.grad, tied)
             optimizer.step()
             with torch.no_grad():  # keep the bases inside the signed space the network predicts in
                 global_bases.clamp_(-1.0, 1.0)

@@ -28,6 +28,7 @@ Shapes: photos (N, 3, H, W) linear in [0, 1]; positions (N, 3) [patch half-width
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -352,15 +353,13 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
     from ..capture import CaptureConfig, Capturer
 
     started = time.perf_counter()
+    from .run import shown_refinement
+
     capture_config = CaptureConfig(**({"symmetries": config.symmetries} if config.symmetries else {}),
                                    **({"network_resolution": config.network_resolution}
                                       if config.network_resolution is not None else {}),
-                                   **({"resolution": config.resolution} if config.resolution else {}))
-    if config.refine_steps:
-        from dataclasses import replace
-
-        capture_config = replace(capture_config, refine=replace(capture_config.refine, steps=config.refine_steps,
-                                                                normals=config.refine_normals))
+                                   **({"resolution": config.resolution} if config.resolution else {}),
+                                   refine=shown_refinement(config))
     capturer = Capturer(config.model, capture_config)
     folders = scene_folders(config.data)
     if not folders:
@@ -388,7 +387,8 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
     rows[PAPER_ROW] = {"rmse": PAPER_REAL_RMSE}
     summary = {"protocol": "real (calibrated scenes)", "data": str(config.data), "model": config.model or "shipped",
                "input_photo": config.input_photo, "scenes": {name: r["rows"] for name, r in results.items()},
-               "rows": rows, "n_scenes": len(results), "notes": notes, "refine_steps": capture_config.refine.steps,
+               "rows": rows, "n_scenes": len(results), "notes": notes,
+               "refine": dataclasses.asdict(capture_config.refine),
                "seconds": time.perf_counter() - started}
     write_real_evaluation(out, summary, results)
     return summary

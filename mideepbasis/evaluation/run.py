@@ -5,16 +5,45 @@ dataset under the protocol (``protocol``), scored (``metrics``), written by ``re
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from .. import constants
+from ..capture.refine import RefineConfig
+from ..configs import positive_int
 from .metrics import LPIPS, light_error_deg, map_rmse, rerender_rmse, score, summary_scores, trivial_baseline
 from .protocol import (RERENDER_COUNT, ROUGHNESS_GROUPS, evaluation_offsets, flash_photos, load_evaluation_materials,
                        random_lights_and_views, resize_maps)
+
+
+#: The dataset layouts ``evaluate`` reads.
+FORMATS = ("deschaintre5", "deschaintre4", "folder", "calibrated")
+
+
+def input_photo(text: str) -> int | str:
+    """``N`` or ``all``, for ``EvaluationConfig.input_photo``."""
+    if text == "all":
+        return text
+    if not text.isdigit():
+        raise ValueError(f"must be a photo number or 'all', got {text!r}")
+    return int(text)
+
+
+def symmetry_count(text: str) -> int:
+    """1, 2, 4 or 8, for ``EvaluationConfig.symmetries``."""
+    if text not in ("1", "2", "4", "8"):
+        raise ValueError(f"must be 1, 2, 4 or 8, got {text!r}")
+    return int(text)
+
+
+def environments(text: str) -> tuple[str, ...]:
+    """``studio,sunsky,FILE.exr``, checked (``environment.parse_environments``)."""
+    from .environment import parse_environments
+
+    return parse_environments(text)
 
 
 @dataclass(frozen=True)
@@ -24,11 +53,12 @@ class EvaluationConfig:
     data: str
     """Dataset path [folder]."""
 
-    format: str = "deschaintre5"
+    format: str | None = field(default=None, metadata={"choices": FORMATS})
     """``deschaintre5``, ``deschaintre4`` (strips), ``folder`` (material folders or PBR maps) or
-    ``calibrated`` (real photos at calibrated positions: the real-photo protocol, ``evaluation.real``)."""
+    ``calibrated`` (real photos at calibrated positions: the real-photo protocol); None:
+    ``calibrated`` where the folder holds calibrated scenes, else ``deschaintre5``."""
 
-    input_photo: int | str = 0
+    input_photo: int | str = field(default=0, metadata={"parse": input_photo, "metavar": "N|all"})
     """``calibrated``: the photo of each scene the material is captured from, or ``all``: each in turn."""
 
     out: str = "evaluation"
@@ -40,20 +70,18 @@ class EvaluationConfig:
     model: str | None = None
     """Checkpoint of the model (None: the shipped one)."""
 
-    light: str = "known"
-    """``known``: the model is given the offset; ``search``: it finds it."""
+    light: str = field(default="known", metadata={"choices": ("known", "search")})
+    """``known``: the model is given the offset; ``search``: it finds it (``calibrated``: always searched)."""
 
-    refine_steps: int = 0
-    """Refinement steps of the model's row (the paper: 500)."""
-
-    refine_normals: bool = False
-    """Whether the refinement may turn the global bases' normals (the paper's refinement)."""
+    refine: RefineConfig = RefineConfig(steps=0)
+    """The refinement of the model's row (the paper: 500 steps); 0 steps: none, and where a refined
+    row is shown beside (``baselines``, ``calibrated``), capture's default."""
 
     network_resolution: int | None = None
     """Largest resolution the network runs at [pixels] (None: the model's training resolution; 0: no
     limit), as in ``capture``."""
 
-    symmetries: int | None = None
+    symmetries: int | None = field(default=None, metadata={"parse": symmetry_count, "metavar": "1|2|4|8"})
     """Turns and mirrorings of each photo the model's prediction is averaged over (1, 2, 4 or 8;
     None: capture's default, ``CaptureConfig.symmetries``)."""
 
@@ -72,21 +100,42 @@ class EvaluationConfig:
     fov: float = constants.DEFAULT_FOV_DEG
     """Field of view of the re-rendered inputs [deg]."""
 
-    limit: int | None = None
+    limit: int | None = field(default=None, metadata={"parse": positive_int})
     """Evaluate only the first this many materials (quick runs)."""
 
-    resolution: int | None = None
-    """Resample the materials to this size first [pixels] (None: as stored)."""
+    resolution: int | None = field(default=None, metadata={"parse": positive_int})
+    """Resample the materials to this size first [pixels] (None: as stored); ``calibrated``: the
+    capture's working resolution, at which the photos are compared (None: capture's)."""
 
-    environment: tuple[str, ...] = ()
+    environment: tuple[str, ...] = field(default=(), metadata={"parse": environments,
+                                                                "metavar": "studio,sunsky[,FILE.exr]"})
     """Also compare path-traced renders under these environments (``studio``, ``sunsky``,
     ``uniform``, EXR/HDR files; ``evaluation.environment``); empty: not at all."""
 
-    environment_spp: int | None = None
+    environment_spp: int | None = field(default=None, metadata={"parse": positive_int})
     """Samples per pixel of the environment renders (None: the protocol's)."""
 
-    environment_resolution: int | None = None
+    environment_resolution: int | None = field(default=None, metadata={"parse": positive_int})
     """Size of the environment renders [pixels] (None: the protocol's)."""
+
+    @property
+    def data_format(self) -> str:
+        """``format``, or the one the data's folder shows where it is None."""
+        if self.format is not None:
+            return self.format
+        from .real import is_calibrated
+
+        return "calibrated" if is_calibrated(self.data) else "deschaintre5"
+
+
+def shown_refinement(config: EvaluationConfig) -> RefineConfig:
+    """The refinement of a refined row shown beside the unrefined one: the config's, or capture's
+    default where the config gives no steps."""
+    from dataclasses import replace
+
+    from ..capture import CaptureConfig
+
+    return config.refine if config.refine.steps else replace(config.refine, steps=CaptureConfig().refine.steps)
 
 
 def _capture_config(symmetries: int | None = None, **fields):
@@ -96,20 +145,20 @@ def _capture_config(symmetries: int | None = None, **fields):
     return CaptureConfig(**fields, **({} if symmetries is None else {"symmetries": symmetries}))
 
 
-def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine_steps: int,
-                 progress: bool, label: str, refine_normals: bool = False, network_resolution: int | None = None,
+def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine: RefineConfig,
+                 progress: bool, label: str, network_resolution: int | None = None,
                  symmetries: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
-    """Predictions (N, 10, H, W) without and (when ``refine_steps``) with refinement, from one search
+    """Predictions (N, 10, H, W) without and (when ``refine.steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
     import time
 
     from tqdm import tqdm
 
-    from ..capture import Capturer, Photo, RefineConfig
+    from ..capture import Capturer, Photo
 
     convention = model.config.convention
     capturer = Capturer(model, _capture_config(fov=fov, network_resolution=network_resolution, symmetries=symmetries,
-                                               refine=RefineConfig(steps=refine_steps, normals=refine_normals)))
+                                               refine=refine))
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
@@ -125,7 +174,7 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
         plain.append(prediction.maps.cpu())
         seconds = time.perf_counter() - started
         refine_seconds = 0.0
-        if refine_steps and prediction.output.weights is not None:
+        if refine.steps and prediction.output.weights is not None:
             started = time.perf_counter()
             refined, _ = capturer.refine(prediction, photo, offset)
             refined_maps.append(refined.maps.cpu())
@@ -144,7 +193,7 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     started = time.perf_counter()
     # Checked and locked before the work; written beside and swapped in whole at the end.
     with OutputFolder(config.out, overwrite=config.overwrite, inputs=[config.data], kind="evaluation") as folder:
-        if config.format == "calibrated":
+        if config.data_format == "calibrated":
             from .real import run_real_evaluation
 
             return run_real_evaluation(config, folder.staging, progress)
@@ -159,7 +208,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     from ..model.checkpoint import load_model
     from ..reporting import write_evaluation
 
-    materials = load_evaluation_materials(config.data, config.format)
+    materials = load_evaluation_materials(config.data, config.data_format)
     names, truth, stored, skipped = materials.names, materials.maps, materials.stored, materials.skipped
     repaired = materials.repaired_pixels
     if config.limit:
@@ -180,12 +229,13 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     rows: dict[str, dict] = {}
     per_material: dict[str, dict] = {}
     predictions = {}
-    steps = config.refine_steps or (CaptureConfig().refine.steps if config.baselines else 0)
-    plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, steps, progress, "model",
-                                           config.refine_normals, config.network_resolution, config.symmetries)
+    refine = shown_refinement(config) if config.baselines else config.refine
+    steps = refine.steps
+    plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, refine, progress, "model",
+                                           config.network_resolution, config.symmetries)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
-    kept = "" if config.refine_normals else ", normals kept"
+    kept = "" if refine.normals else ", normals kept"
     unrefined_row, refined_row = "model (no refinement)", f"model + refinement ({steps} steps{kept})"
     if refined is None or config.baselines:
         predictions[unrefined_row] = plain
@@ -194,7 +244,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
         predictions[refined_row] = refined
         rows[refined_row] = {"seconds": seconds + float(sum(d["refine_seconds"] for d in details)),
                              "light_error_deg": light_error}
-    main_row = refined_row if config.refine_steps else unrefined_row
+    main_row = refined_row if config.refine.steps else unrefined_row
     for row, predicted in predictions.items():
         per_material[row] = score(predicted, truth, lights, views, convention, lpips, cross_check=row == main_row,
                                   stored=stored)
@@ -222,10 +272,10 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     summary = {"n_materials": len(truth), "skipped": skipped,
                "repaired_normal_pixels": int(sum(repaired)),
                "materials_with_repaired_normals": int(sum(1 for r in repaired if r)),
-               "data": str(config.data), "format": config.format,
+               "data": str(config.data), "format": config.data_format,
                "resolution": truth.shape[-1],
                "model": config.model or "shipped", "convention": convention, "light": config.light,
-               "refine_steps": config.refine_steps, "refine_normals": config.refine_normals,
+               "refine_steps": config.refine.steps, "refine_normals": config.refine.normals,
                "network_resolution": config.network_resolution,
                "symmetries": config.symmetries or CaptureConfig().symmetries, "row": main_row,
                **summary_scores(main), "render_lpips": main.get("render_lpips"), "render_rmse_torch_reference": main.get("render_rmse_torch"),

@@ -83,9 +83,23 @@ class FitInputs:
     """P: the blended unit normal of the predicted bases where the normals stay (``fixed_normal``);
     a single unused zero where they move."""
 
+    pixel_weights: mi.Float
+    """P: each pixel's weight in the loss (mean 1; 0 leaves a pixel out)."""
+
+    tied: mi.Float
+    """K: 1 where a value is a specular channel of a basis whose three move together (their
+    gradients replaced by their mean), else 0."""
+
     DRJIT_STRUCT = {"weights": list, "deviations": mi.Float, "predicted": mi.Float, "movable": mi.Float,
                     "target": mi.Color3f, "light": mi.Point3f, "intensity": mi.Float, "lr": mi.Float,
-                    "prior": mi.Float, "normal": mi.Vector3f}
+                    "prior": mi.Float, "normal": mi.Vector3f, "pixel_weights": mi.Float, "tied": mi.Float}
+
+
+def _specular_slots() -> np.ndarray:
+    """(10,) 1 at the specular channels of a basis."""
+    slots = np.zeros(constants.BASIS_CHANNELS, dtype=np.float32)
+    slots[constants.SPECULAR] = 1.0
+    return slots
 
 
 #: The signed-space channels the refinement blends at every step when the normals stay.
@@ -158,7 +172,7 @@ def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step:
     current = data.predicted + (free - data.predicted) * data.movable
     maps, packed = _blend(current, data, bases, pixels, normals_move)
     radiance = flash_renderer(convention).render_maps(*maps, data.light, size, size, data.intensity, extent)
-    loss = dr.sum(dr.abs(dr.clip(radiance, 0.0, 1.0) - data.target), axis=None) / (3 * pixels)
+    loss = dr.sum(dr.abs(dr.clip(radiance, 0.0, 1.0) - data.target) * data.pixel_weights, axis=None) / (3 * pixels)
     dr.backward(loss)
     difference = current - data.predicted
     # d/d current of prior * mean |current - predicted| (torch's |x| has gradient 0 at 0)
@@ -171,6 +185,10 @@ def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step:
         sums = dr.select(blended, dr.gather(mi.Float, sums, (slot // channels) * len(REFLECTANCE_CHANNELS)
                                             + channel - REFLECTANCE_CHANNELS.start, blended), 0.0)
     gradient = (sums + prior_gradient) * data.movable
+    # Tied specular channels: each moved by the mean of its basis's three gradients.
+    specular_start = (dr.arange(mi.UInt32, count) // channels) * channels + constants.SPECULAR.start
+    tied_mean = sum(dr.gather(mi.Float, gradient, specular_start + c) for c in range(3)) / 3.0
+    gradient = dr.select(data.tied > 0, tied_mean, gradient)
     prior_term = data.prior * dr.sum(dr.abs(difference)) / count
     beta1, beta2 = ADAM_BETAS
     first_moment = dr.lerp(first_moment, gradient, 1 - beta1)
@@ -195,7 +213,8 @@ _frozen_step = dr.freeze(_step)
 def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.ndarray, movable: np.ndarray,
                      target: np.ndarray, light: np.ndarray, intensity: float, convention: str, extent: float,
                      steps: int, lr: float, prior: float, progress=None,
-                     every_channel: bool = False) -> tuple[np.ndarray, list[float]]:
+                     every_channel: bool = False, pixel_weights: np.ndarray | None = None,
+                     tied: np.ndarray | None = None) -> tuple[np.ndarray, list[float]]:
     """Adam on the global bases so the plugin's render of the blend matches the photo.
 
     Args:
@@ -206,7 +225,9 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
             prior: as ``RefineConfig``; progress: wraps the range of steps (e.g. ``tqdm``), which
             then advances as the steps are computed (``PROGRESS_SYNC_STEPS``);
             every_channel: blend and differentiate all ten channels at every step even where the
-            normals stay (the quicker path's reference in the tests).
+            normals stay (the quicker path's reference in the tests); pixel_weights: (r, r) each
+            pixel's weight in the loss, mean 1 (None: all 1); tied: (N,) whether each basis's three
+            specular channels move together (None: none).
 
     Returns:
         ((N, 10) the refined bases, the loss at every step).
@@ -220,7 +241,10 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      target=mi.Color3f(*[as_float(channel) for channel in target]),
                      light=mi.Point3f(*[float(x) for x in np.asarray(light).reshape(3)]),
                      intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), prior=mi.Float(float(prior)),
-                     normal=dr.zeros(mi.Vector3f, 1))
+                     normal=dr.zeros(mi.Vector3f, 1),
+                     pixel_weights=as_float(np.ones((size, size)) if pixel_weights is None else pixel_weights),
+                     tied=as_float(np.zeros((bases, constants.BASIS_CHANNELS)) if tied is None else
+                                   np.asarray(tied, dtype=np.float32)[:, None] * _specular_slots()))
     normals_move = every_channel or bool(np.any(np.asarray(movable)[constants.NORMAL] != 0))
     if not normals_move:
         data.normal = fixed_normal(data, bases, size * size)
