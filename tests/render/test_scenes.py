@@ -3,10 +3,6 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
-import zipfile
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -80,20 +76,6 @@ def test_scene_files_are_installed_with_the_package():
                  "preview_uniform.xml", "preview_shape.xml", "shape_sphere.xml", "shape_cloth.xml", "env_envmap.xml",
                  "env_sunsky.xml", "env_uniform.xml", "meshes/cloth.ply", "envmaps/studio.exr"]:
         assert (folder / name).is_file(), name
-
-
-@pytest.mark.slow
-def test_wheel_contains_the_scenes(tmp_path):
-    root = Path(__file__).resolve().parents[2]
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-                    "-w", str(tmp_path), str(root)], check=True)
-    wheel = next(tmp_path.glob("mideepbasis-*.whl"))
-    names = set(zipfile.ZipFile(wheel).namelist())
-    assert {"mideepbasis/scenes/flash.xml", "mideepbasis/scenes/envmaps/studio.exr",
-            "mideepbasis/scenes/textures/flat_normal.exr", "mideepbasis/render/bsdf.py",
-            "mideepbasis/scenes/meshes/cloth.ply", "mideepbasis/scenes/shape_cloth.xml",
-            "mideepbasis/assets/viewer/viewer.js", "mideepbasis/assets/viewer/shading.frag",
-            "mideepbasis/assets/viewer/studio_prefiltered.json"} <= names
 
 
 def test_a_white_lambertian_sphere_under_a_uniform_sky_renders_to_its_known_value():
