@@ -65,7 +65,7 @@ CONFIGURATIONS = {
 def measure(name: str, model: str | None, repeats: int) -> dict:
     """Runs in a child process: times ``capture`` for one configuration."""
     import mideepbasis  # noqa: F401
-    from mideepbasis.capture import CaptureConfig, Capturer, RefineConfig
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
     from mideepbasis.render.api import example_capture_dir
 
     photo = example_capture_dir() / "photo.jpg"

@@ -34,10 +34,10 @@ DEFER_TRACING_ENV = "MIDEEPBASIS_DEFER_TORCH_TRACING"
 IMPORT = "import mideepbasis"
 
 #: (module, attribute) of the functions marked, by the name printed.
-MARKED = {"model": ("mideepbasis.capture.pipeline", "Capturer.__init__"),
-          "search": ("mideepbasis.capture.pipeline", "Capturer.search"),
-          "predict": ("mideepbasis.capture.pipeline", "Capturer.predict"),
-          "refine": ("mideepbasis.capture.pipeline", "Capturer.refine"),
+MARKED = {"model": ("mideepbasis.capturing.pipeline", "Capturer.__init__"),
+          "search": ("mideepbasis.capturing.pipeline", "Capturer.search"),
+          "predict": ("mideepbasis.capturing.pipeline", "Capturer.predict"),
+          "refine": ("mideepbasis.capturing.pipeline", "Capturer.refine"),
           "write": ("mideepbasis.export", "save_capture"),
           "render": ("mideepbasis.render.scenes", "render"),
           "report_page": ("mideepbasis.reporting", "write_report_page")}

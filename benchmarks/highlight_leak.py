@@ -31,7 +31,7 @@ import torch
 from common import RESULTS, shared_predictions, write_report
 
 from mideepbasis import constants, geometry
-from mideepbasis.capture import CaptureConfig, Capturer
+from mideepbasis.capturing import CaptureConfig, Capturer
 from mideepbasis.material import Material
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.render.api import example_capture_dir

@@ -21,7 +21,7 @@ import mideepbasis  # noqa: F401
 import torch
 from common import RESULTS, SHARED_TEST, write_report
 
-from mideepbasis.capture import network_resolution_limit, predict
+from mideepbasis.capturing import network_resolution_limit, predict
 from mideepbasis.data.datasets import DeschaintreDataset
 from mideepbasis.evaluation import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
 from mideepbasis.model.checkpoint import load_model, shipped_model_path

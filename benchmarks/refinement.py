@@ -24,7 +24,7 @@ import torch
 from common import RESULTS, SHARED_TEST, write_report
 from tqdm import tqdm
 
-from mideepbasis.capture import Capturer, Photo, RefineConfig
+from mideepbasis.capturing import Capturer, Photo, RefineConfig
 from mideepbasis.evaluation import (EvaluationConfig, evaluation_offsets, flash_photos, load_evaluation_set,
                                     random_lights_and_views, score, summary_scores)
 from mideepbasis.render import render_flash

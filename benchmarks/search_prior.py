@@ -31,7 +31,7 @@ import torch
 from common import RESULTS, write_report
 from tqdm import tqdm
 
-from mideepbasis.capture import CaptureConfig, Capturer, Photo, SearchConfig
+from mideepbasis.capturing import CaptureConfig, Capturer, Photo, SearchConfig
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import sample_offsets
 from mideepbasis.evaluation import ROUGHNESS_GROUPS, flash_photos, light_error_deg

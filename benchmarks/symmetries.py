@@ -33,7 +33,7 @@ import torch
 from common import RESULTS, SHARED_TEST, write_report
 
 from mideepbasis import constants
-from mideepbasis.capture import Capturer, CaptureConfig, Photo
+from mideepbasis.capturing import Capturer, CaptureConfig, Photo
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.evaluation.metrics import map_rmse, rerender_rmse
 from mideepbasis.evaluation.protocol import (RERENDER_COUNT, evaluation_offsets, flash_photos, load_evaluation_materials,

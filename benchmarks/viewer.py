@@ -25,7 +25,7 @@ import torch
 from common import RESULTS, write_report
 
 from mideepbasis import constants
-from mideepbasis.capture import CaptureConfig, RefineConfig, capture
+from mideepbasis.capturing import CaptureConfig, RefineConfig, capture
 from mideepbasis.export import save_capture
 from mideepbasis.imageio import linear_to_srgb
 from mideepbasis.material import Material

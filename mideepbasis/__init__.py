@@ -34,18 +34,14 @@ __version__ = "0.1.0"
 __all__ = ["Material", "MaterialError", "ImageIOError", "InputError", "MideepbasisError", "read_image",
            "write_image", "render_material", "render_flash", "load_model", "capture", "__version__"]
 
-# Loaded on first use: these import drjit and Mitsuba, which take a moment to start.
-_RENDERING = {"render_material": "mideepbasis.render.api", "render_flash": "mideepbasis.render",
-              "load_model": "mideepbasis.model.checkpoint"}
+# Loaded on first use: these import torch's network, drjit and Mitsuba, which take a moment to start.
+_LAZY = {"render_material": "mideepbasis.render.api", "render_flash": "mideepbasis.render",
+         "load_model": "mideepbasis.model.checkpoint", "capture": "mideepbasis.capturing.pipeline"}
 
 
 def __getattr__(name):
-    if name == "capture":  # the submodule, callable as its capture function (see capture/__init__.py)
+    if name in _LAZY:
         import importlib
 
-        return importlib.import_module("mideepbasis.capture")
-    if name in _RENDERING:
-        import importlib
-
-        return getattr(importlib.import_module(_RENDERING[name]), name)
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'mideepbasis' has no attribute {name!r}")

@@ -101,7 +101,7 @@ PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".heic", ".heif", ".exr")
 
 
 def _add_capture(subparsers, describe: bool = True) -> None:
-    from .capture import CaptureConfig
+    from .capturing import CaptureConfig
     from .configs import add_config_arguments
 
     parser = subparsers.add_parser(
@@ -141,7 +141,7 @@ def _photos(paths: list[Path]) -> list[Path]:
 
 
 def _run_capture(args) -> int:
-    from .capture import CaptureConfig, Capturer
+    from .capturing import CaptureConfig, Capturer
     from .configs import config_from_arguments
     from .export import save_capture
     from .outputs import OutputFolder
@@ -185,7 +185,7 @@ def _capture_batch(photos: list[Path], args, config) -> int:
     """Several photos: worker processes (``capture.batch``), one line per photo as it completes."""
     from tqdm import tqdm
 
-    from .capture.batch import SaveOptions, capture_batch
+    from .capturing.batch import SaveOptions, capture_batch
 
     failures = 0
     options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles, shape_previews=bool(args.shape_previews))
@@ -229,7 +229,7 @@ def _add_demo(subparsers) -> None:
 def _run_demo(args) -> None:
     import json
 
-    from .capture import capture
+    from .capturing import capture
     from .evaluation import light_error_deg, map_rmse
     from .export import save_capture
     from .material import Material

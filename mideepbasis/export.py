@@ -35,7 +35,6 @@ import numpy as np
 import torch
 
 from . import constants
-from .errors import InputError
 from .imageio import background_writes, linear_to_srgb, write_bytes, write_image
 from .outputs import OutputFolder
 

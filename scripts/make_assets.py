@@ -114,7 +114,7 @@ def example_capture(folder: Path) -> None:
     from PIL import Image
 
     from mideepbasis import geometry
-    from mideepbasis.capture import field_of_view_from_focal
+    from mideepbasis.capturing import field_of_view_from_focal
     from mideepbasis.data.procedural import generate
     from mideepbasis.data.synth import SynthesisConfig, simulate_photo
     from mideepbasis.imageio import linear_to_srgb

@@ -4,7 +4,6 @@ a white Lambertian under a uniform sky at its known value, the rows in summary, 
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest

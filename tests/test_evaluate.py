@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from mideepbasis.capture import RefineConfig
+from mideepbasis.capturing import RefineConfig
 from mideepbasis.evaluation import (EvaluationConfig, light_error_deg, map_rmse, random_lights_and_views, rerender_rmse,
                                     run_evaluation, ssim, trivial_baseline)
 
@@ -170,7 +170,7 @@ def test_evaluation_counts_the_repaired_normals(tmp_path, evaluation_dataset):
 
 
 def test_evaluation_averages_over_the_symmetries_capture_does_unless_told(evaluation_dataset, tmp_path):
-    from mideepbasis.capture import CaptureConfig
+    from mideepbasis.capturing import CaptureConfig
 
     folder, model = evaluation_dataset
     summaries = {}

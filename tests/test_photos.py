@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from mideepbasis import cli
-from mideepbasis.capture import CaptureConfig, RefineConfig, capture
+from mideepbasis.capturing import CaptureConfig, RefineConfig, capture
 from mideepbasis.imageio import read_image
 from mideepbasis.render.api import example_capture_dir
 
@@ -95,7 +95,7 @@ def test_a_48_megapixel_jpeg_captures_in_little_memory(tmp_path):
     # The peak is the child's own (VmHWM, [KiB]): its ru_maxrss also counts the pytest process it was
     # spawned from (Linux keeps the larger of the two across the exec), which grows with the suite.
     script = ("import sys\n"
-              "from mideepbasis.capture import RefineConfig, capture\n"
+              "from mideepbasis.capturing import RefineConfig, capture\n"
               "result = capture(sys.argv[1], refine=RefineConfig(steps=10))\n"
               "peak = next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM'))\n"
               "print(result.material.width, peak)\n")

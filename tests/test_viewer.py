@@ -36,7 +36,7 @@ def agreement(image: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.
 @pytest.fixture(scope="module")
 def captured(tmp_path_factory):
     """The bundled photo captured (no refinement): its folder, report.html included."""
-    from mideepbasis.capture import CaptureConfig, RefineConfig, capture
+    from mideepbasis.capturing import CaptureConfig, RefineConfig, capture
     from mideepbasis.export import save_capture
     from mideepbasis.render.api import example_capture_dir
 

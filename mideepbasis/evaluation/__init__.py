@@ -17,9 +17,10 @@ Modules:
 - ``metrics``: the metrics, each a plain function (map RMSE, re-rendering RMSE, SSIM, FLIP, LPIPS);
 - ``protocol``: the photos, offsets, lights and views, and the evaluation materials;
 - ``run``: ``EvaluationConfig`` and ``run_evaluation`` (the predictions and their scores);
-- ``environment``: path-traced comparisons under environment light (``evaluate --environment``).
+- ``environment``: path-traced comparisons under environment light (``evaluate --environment``);
+- ``real``: the real-photo protocol on calibrated scenes (``evaluate --data`` of such scenes);
+- ``report``: the files (``write_evaluation``, the figures).
 
-The files are written by ``mideepbasis.reporting`` (``write_evaluation``).
 """
 
 from .metrics import (LPIPS, Scores, flip, light_error_deg, map_rmse, rerender, rerender_rmse, score, ssim, ssim_map,

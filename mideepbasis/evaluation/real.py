@@ -310,7 +310,7 @@ def true_maps(scene: CalibratedScene, size: int) -> torch.Tensor:
 
 def scene_photos(scene: CalibratedScene, resolution: int | str) -> torch.Tensor:
     """(N, 3, R, R) the scene's photos, linear, as capture loads them (``load_photo``)."""
-    from ..capture.photo import load_photo
+    from ..capturing.photo import load_photo
 
     return torch.stack([load_photo(path, fov=scene.fov(0), resolution=resolution)[0] for path in scene.photos])
 
@@ -350,7 +350,7 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
 
     from tqdm import tqdm
 
-    from ..capture import CaptureConfig, Capturer
+    from ..capturing import CaptureConfig, Capturer
 
     started = time.perf_counter()
     from .run import shown_refinement

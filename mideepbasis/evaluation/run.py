@@ -1,5 +1,5 @@
 """The evaluation run (``mideepbasis evaluate``): the model's (and the baselines') predictions on a
-dataset under the protocol (``protocol``), scored (``metrics``), written by ``reporting.write_evaluation``.
+dataset under the protocol (``protocol``), scored (``metrics``), written by ``report.write_evaluation``.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from .. import constants
-from ..capture.refine import RefineConfig
+from ..capturing.refine import RefineConfig
 from ..configs import positive_int
 from .metrics import LPIPS, light_error_deg, map_rmse, rerender_rmse, score, summary_scores, trivial_baseline
 from .protocol import (RERENDER_COUNT, ROUGHNESS_GROUPS, evaluation_offsets, flash_photos, load_evaluation_materials,
@@ -133,14 +133,14 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
     default where the config gives no steps."""
     from dataclasses import replace
 
-    from ..capture import CaptureConfig
+    from ..capturing import CaptureConfig
 
     return config.refine if config.refine.steps else replace(config.refine, steps=CaptureConfig().refine.steps)
 
 
 def _capture_config(symmetries: int | None = None, **fields):
     """The capture settings of an evaluation: capture's own where the evaluation leaves one None."""
-    from ..capture import CaptureConfig
+    from ..capturing import CaptureConfig
 
     return CaptureConfig(**fields, **({} if symmetries is None else {"symmetries": symmetries}))
 
@@ -154,7 +154,7 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
 
     from tqdm import tqdm
 
-    from ..capture import Capturer, Photo
+    from ..capturing import Capturer, Photo
 
     convention = model.config.convention
     capturer = Capturer(model, _capture_config(fov=fov, network_resolution=network_resolution, symmetries=symmetries,
@@ -204,9 +204,9 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     """``run_evaluation`` writing into ``out``."""
     import time
 
-    from ..capture import CaptureConfig
+    from ..capturing import CaptureConfig
     from ..model.checkpoint import load_model
-    from ..reporting import write_evaluation
+    from .report import write_evaluation
 
     materials = load_evaluation_materials(config.data, config.data_format)
     names, truth, stored, skipped = materials.names, materials.maps, materials.stored, materials.skipped
@@ -316,7 +316,7 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
     """The search's angular error by roughness group, and map and re-rendering RMSE against the offset angle."""
     from tqdm import tqdm
 
-    from ..capture import Capturer, Photo
+    from ..capturing import Capturer, Photo
     from ..data.synth import sample_offsets
 
     convention = model.config.convention
@@ -360,7 +360,7 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
         robustness.append({"angle_deg": float(angle), "maps_rmse_mean": float(np.mean(maps_rmse)),
                            "render_rmse": float(np.mean(render_rmse))})
 
-    from ..reporting import lighting_figure
+    from .report import lighting_figure
 
     lighting_figure(errors, robustness, config.light, out / "lighting.png")
     return {"search_error_by_roughness": table, "robustness": robustness, "figure": "lighting.png",

@@ -216,7 +216,7 @@ def test_the_renderer_agrees_with_the_moves(symmetry):
 
 
 def test_capture_config_refuses_a_count_that_is_not_a_symmetry_set():
-    from mideepbasis.capture import CaptureConfig
+    from mideepbasis.capturing import CaptureConfig
 
     with pytest.raises(ValueError, match="symmetries must be one of 1, 2, 4, 8, got 3"):
         CaptureConfig(symmetries=3)

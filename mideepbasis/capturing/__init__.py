@@ -19,8 +19,6 @@ Shapes: photos (B, 3, H, W) linear in [0, 1]; lights (B, 3) flash positions and 
 
 from __future__ import annotations
 
-import sys
-
 from .photo import MAX_NATIVE_RESOLUTION, MIN_PHOTO_SIZE, field_of_view_from_focal, load_photo
 from .pipeline import (CaptureConfig, CaptureResult, Capturer, Photo, Prediction, capture, network_resolution_limit,
                        predict, predict_small)
@@ -31,15 +29,3 @@ __all__ = ["MAX_NATIVE_RESOLUTION", "MIN_PHOTO_SIZE", "CaptureConfig", "CaptureR
            "Prediction", "RefineConfig", "SearchConfig", "SearchResult", "SmallAdam", "candidate_offsets", "capture",
            "field_of_view_from_focal", "light_objective", "load_photo", "network_resolution_limit", "predict",
            "predict_small", "refine_global_bases", "search_light"]
-
-
-class _CallableModule(type(sys.modules[__name__])):
-    """This package, callable as its ``capture`` function: docs/ARCHITECTURE.md section 10 promises
-    ``from mideepbasis import capture; capture("photo.jpg")``, and once imported the subpackage
-    ``mideepbasis.capture`` is what that name is bound to."""
-
-    def __call__(self, *args, **kwargs) -> CaptureResult:
-        return capture(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule
