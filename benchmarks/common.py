@@ -110,6 +110,12 @@ def run_generator_settings(path: Path) -> dict:
         raise SystemExit(f"{path}: not a training run's config.json with procedural settings ({error})")
     if not isinstance(procedural, dict):
         raise SystemExit(f"{path}: its procedural settings are {procedural!r}, not a table of settings")
+    from mideepbasis.configs import drop_removed_fields
+
+    try:  # a run of an earlier version may hold settings since removed, at their off values
+        procedural = drop_removed_fields("GeneratorConfig", procedural, str(path))
+    except ValueError as error:
+        raise SystemExit(str(error))
     return {key: tuple(value) if isinstance(value, list) else value for key, value in procedural.items()}
 
 

@@ -15,7 +15,7 @@ Measures:
   written to benchmarks/results/coverage.png (with ``-o OUT.json``: OUT.png beside it). Values are
   compared as the renderer uses them (linear; the test maps are used as stored, like the reference
   implementations do). With ``--run-config``, the procedural materials are drawn as that training
-  run drew them (its undulation, low relief and inversion).
+  run drew them (its undulation, gloss and darkening).
 """
 
 from __future__ import annotations

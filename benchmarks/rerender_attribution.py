@@ -22,10 +22,9 @@ import torch
 from common import RESULTS, shared_predictions, write_report
 
 from mideepbasis import constants
-from mideepbasis.evaluation.metrics import rerender_rmse
+from mideepbasis.evaluation.metrics import flat_normals, rerender_rmse
 from mideepbasis.evaluation.protocol import RERENDER_COUNT, random_lights_and_views
 from mideepbasis.model.checkpoint import load_model
-from mideepbasis.train import flat_normals
 
 
 def main() -> None:

@@ -13,7 +13,7 @@ median of 7 after one untimed call. Stop any training run while it times (its fi
 with the machine's other work).
 
 With ``--chunks``, only the time of the 8-symmetry prediction with each number of moved copies
-run through the network at a time (``network.SYMMETRY_CHUNK``): the chunks alternate in each
+run through the network at a time (``model.symmetry.SYMMETRY_CHUNK``): the chunks alternate in each
 round (the order reversed every other round), ``--repeats`` rounds after one untimed call each,
 and the largest difference of the maps from the first chunk's is reported (the chunking must not
 change the prediction).
@@ -81,28 +81,28 @@ def timing(capturer: Capturer, counts: list[int], repeats: int = 7) -> dict:
 def chunk_timing(capturer: Capturer, chunks: list[int], repeats: int) -> dict:
     """Median seconds of the bundled photo's 8-symmetry ``predict`` for each symmetry chunk, and
     each chunk's largest map difference from the first chunk's."""
-    from mideepbasis.model import network
+    from mideepbasis.model import symmetry
 
     photo = capturer.load(example_capture_dir() / "photo.jpg")
     predicting = capturer.with_config(symmetries=8)
-    shipped = network.SYMMETRY_CHUNK
+    shipped = symmetry.SYMMETRY_CHUNK
     times = {chunk: [] for chunk in chunks}
     differences = {}
     first = None
     try:
         for chunk in chunks:
-            network.SYMMETRY_CHUNK = chunk
+            symmetry.SYMMETRY_CHUNK = chunk
             maps = predicting.predict(photo, (0.25, -0.17)).maps
             first = maps if first is None else first
             differences[chunk] = float((maps - first).abs().max())
         for round_index in range(repeats):
             for chunk in chunks if round_index % 2 == 0 else chunks[::-1]:
-                network.SYMMETRY_CHUNK = chunk
+                symmetry.SYMMETRY_CHUNK = chunk
                 start = time.perf_counter()
                 predicting.predict(photo, (0.25, -0.17)).maps
                 times[chunk].append(time.perf_counter() - start)
     finally:
-        network.SYMMETRY_CHUNK = shipped
+        symmetry.SYMMETRY_CHUNK = shipped
     return {str(chunk): {"median_s": round(statistics.median(times[chunk]), 4),
                          "runs_s": [round(t, 4) for t in times[chunk]],
                          "largest_map_difference": differences[chunk]} for chunk in chunks}

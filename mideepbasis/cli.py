@@ -389,6 +389,8 @@ def _run_train(args) -> None:
         document, _ = read_checkpoint(checkpoint)
         try:
             base = TrainConfig.from_dict(document["training"]["config"], str(checkpoint), document.get("network"))
+        except InputError:
+            raise  # names the file and the setting already
         except (KeyError, TypeError, ValueError) as error:
             raise InputError(f"{checkpoint}: its stored training settings cannot be read ({error})") from None
         if "preset" in args and args.preset != base.preset:

@@ -260,3 +260,33 @@ def differences(stored, current, ignore: set[str] | frozenset[str] = frozenset()
     a, b = flatten(stored), flatten(current)
     return [(key, a.get(key), b.get(key)) for key in sorted(set(a) | set(b))
             if key not in ignore and a.get(key) != b.get(key)]
+
+
+#: Settings this version no longer has, by the config that had them, each with the value that
+#: turned it off. A stored config (a checkpoint's network, a run's settings) that holds one at that
+#: value reads as if it did not; another value is refused (``drop_removed_fields``).
+REMOVED_FIELDS: dict[str, dict[str, object]] = {
+    # A second normal unit beside the first; the albedo shading as the normal unit's eighth input.
+    "NetworkConfig": {"normal_booster_width": 0, "normal_unit_albedo": False},
+    # The normal pool's mean of the crops' RMSE (its mean squared error stays).
+    "TrainConfig": {"normal_pool_loss": "mse"},
+    # The procedural relief turned inside out, and scaled down to a low tilt.
+    "GeneratorConfig": {"relief_inversion_probability": 0.0, "low_relief_probability": 0.0,
+                        "low_relief_tilt_deg": (0.3, 2.4)},
+}
+
+
+def drop_removed_fields(kind: str, values: dict, source: str, error: type[Exception] = ValueError) -> dict:
+    """A copy of a stored ``kind`` config's fields (``NetworkConfig``, ...) without those this
+    version no longer has (``REMOVED_FIELDS``), each of which must hold its off value (a list
+    stored for a tuple counts as the tuple); another value raises ``error`` in one line that names
+    the field and ``source`` (the file)."""
+    kept = dict(values)
+    for name, off in REMOVED_FIELDS.get(kind, {}).items():
+        if name not in kept:
+            continue
+        value = kept.pop(name)
+        if (tuple(value) if isinstance(value, list) else value) != off:
+            raise error(f"{source}: uses {name} = {value!r}, which this version no longer has "
+                        f"(it reads only {off!r}, the setting's off value)")
+    return kept

@@ -1,5 +1,6 @@
-"""Area resampling and blurring of images and material maps, shared by capture, training synthesis
-and the reports: a photo and its maps are made smaller (and blurred) the same way wherever they are."""
+"""Area resampling, bilinear upsampling and blurring of images and material maps, shared by capture,
+training synthesis, the network's outputs and the reports: a photo and its maps are made smaller
+(and blurred) the same way wherever they are."""
 
 from __future__ import annotations
 
@@ -59,3 +60,32 @@ def gaussian_blur(image: torch.Tensor, sigma: float, padding: str = "reflect", r
     offsets = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
     kernel = torch.exp(-(offsets**2) / (2 * sigma**2))
     return separable_filter(image, kernel / kernel.sum(), padding)
+
+
+def upsample_bilinear(value: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(..., h, w) to (..., height, width), bilinear (half-pixel centres), every leading entry apart."""
+    flat = value.reshape(value.shape[0], -1, *value.shape[-2:])
+    big = F.interpolate(flat, size=(height, width), mode="bilinear", align_corners=False)
+    return big.reshape(*value.shape[:-2], height, width)
+
+
+def exact_in_bands(rows: int, height: int) -> bool:
+    """Whether ``upsampled_rows`` can upsample ``rows`` rows to ``height``: the output rows' source
+    positions, (y + 1/2) rows / height - 1/2, and so their weights, lose nothing to rounding when a
+    band shifts them by whole input rows where ``height`` is a power-of-two multiple of ``rows``."""
+    factor = height // rows
+    return factor * rows == height and factor & (factor - 1) == 0
+
+
+def upsampled_rows(value: torch.Tensor, height: int, width: int, start: int, stop: int) -> torch.Tensor:
+    """Rows ``start:stop`` of ``upsample_bilinear(value, height, width)`` for (B, C, h, w) with
+    ``exact_in_bands(h, height)``, interpolated from the input rows they need alone. The same
+    weights times the same values, but torch's kernel does not always round its sums alike in
+    outputs of other shapes: equal to float rounding (1e-7), to the bit for a band of every row."""
+    rows = value.shape[-2]
+    factor = height // rows
+    # One input row more on each side: a band's first and last output rows interpolate from it.
+    first, last = max(0, start // factor - 1), min(rows, -(-stop // factor) + 1)
+    band = F.interpolate(value[..., first:last, :].contiguous(), size=((last - first) * factor, width),
+                         mode="bilinear", align_corners=False)
+    return band[..., start - first * factor:stop - first * factor, :]

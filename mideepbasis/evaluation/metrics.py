@@ -4,9 +4,9 @@ Shapes: maps (B, 10, H, W) [normal 3, diffuse 3, roughness 1, specular 3], norma
 images (N, C, H, W) sRGB-encoded in [0, 1]; lights and views (K, 3) [patch half-widths].
 
 Map RMSE is computed on the maps in their stored encoding (normals as (n + 1) / 2, the other maps
-as they are). The re-rendering error compares renders of the prediction and of the truth under
-the same lights and viewpoints, on clipped sRGB-encoded images; FLIP, SSIM and LPIPS compare the
-same renders.
+as they are; training's validation figure, ``unit_normal_map_rmse``, on unit normals). The
+re-rendering error compares renders of the prediction and of the truth under the same lights and
+viewpoints, on clipped sRGB-encoded images; FLIP, SSIM and LPIPS compare the same renders.
 """
 
 from __future__ import annotations
@@ -50,6 +50,26 @@ def map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict[str, torch.Te
     stored_truth = torch.cat([(truth[:, constants.NORMAL] + 1) / 2, truth[:, constants.REFLECTANCE]], dim=1)
     return {name: rmse(stored_predicted[:, channels], stored_truth[:, channels])
             for name, channels in constants.MAP_SLICES.items()}
+
+
+def unit_normal_map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
+    """RMSE of each map over a batch (B, 10, H, W), in the in-memory encoding (unit normals, so the
+    normal's figure is twice ``map_rmse``'s, which is in the stored encoding): training's
+    validation figure."""
+    rmse = ((predicted - truth) ** 2).mean(dim=(0, 2, 3)).sqrt()
+    return {name: rmse[channels].mean().item() for name, channels in constants.MAP_SLICES.items()}
+
+
+def flat_normals(maps: torch.Tensor) -> torch.Tensor:
+    """A copy of maps (B, 10, H, W) with flat normals (+z): the baseline of the normal's RMSE."""
+    flat = maps.clone()
+    flat[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0], dtype=maps.dtype).view(1, 3, 1, 1)
+    return flat
+
+
+def mean_tilt_deg(maps: torch.Tensor) -> float:
+    """Mean angle between the normals of (B, 10, H, W) maps and +z [deg]: how much relief there is."""
+    return torch.rad2deg(torch.acos(maps[:, constants.NORMAL][:, 2].clamp(-1.0, 1.0))).mean().item()
 
 
 def rerender(maps: torch.Tensor, lights: torch.Tensor, views: torch.Tensor, convention: str,

@@ -27,6 +27,7 @@ from safetensors import SafetensorError
 from torch import nn
 from safetensors.torch import load_file, save_file
 
+from ..configs import drop_removed_fields
 from ..errors import InputError
 from .inputs import ModelInfo
 from .network import DeepBasisNet, NetworkConfig
@@ -50,8 +51,10 @@ def network_config_to_dict(config: NetworkConfig) -> dict:
 
 
 def network_config_from_dict(values: dict, source: str = "checkpoint") -> NetworkConfig:
+    """The ``NetworkConfig`` a checkpoint stores. A setting this version no longer has
+    (``configs.REMOVED_FIELDS``) is dropped where it is off and refused otherwise."""
     fields = {f.name: f for f in dataclasses.fields(NetworkConfig)}
-    values = dict(values)
+    values = drop_removed_fields("NetworkConfig", values, source, CheckpointError)
     # Older checkpoints store the input width, which the optional inputs now determine.
     stored_inputs = values.pop("input_channels", None)
     unknown = sorted(set(values) - set(fields))

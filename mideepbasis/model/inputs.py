@@ -166,19 +166,8 @@ RELIEF_CHANNELS = 7
 RELIEF_DIRECTION_CHANNEL = 5
 
 
-#: Largest magnitude of the albedo shading channel (``relief_inputs`` with ``diffuse``): where the
-#: predicted diffuse is near black the ratio says nothing.
-MAX_ALBEDO_SHADING = 2.0
-
-
-def relief_channels(albedo: bool = False) -> int:
-    """Channels of ``relief_inputs``: ``RELIEF_CHANNELS``, one more with the albedo shading."""
-    return RELIEF_CHANNELS + int(albedo)
-
-
 def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG,
-                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0,
-                  diffuse: torch.Tensor | None = None) -> torch.Tensor:
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
     """The input of the normal unit (``NetworkConfig.normal_unit_width``): what a relief changes in a
     flash photo, made explicit. A small tilt t of the normal changes the shading by about
     t . l_xy, the flash direction's component in the sample plane, so the unit gets:
@@ -187,18 +176,13 @@ def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = consta
     - the shading: 0.3 log(luminance / falloff), the falloff a white Lambertian under the same
       flash (``flash_falloff``), so the flash's own gradient is gone (1);
     - its high-pass, minus a Gaussian blur of sigma 1/64 of the width (1);
-    - 3 l_x and 3 l_y, the unit vector from each pixel's point towards the flash (2);
-    - with ``diffuse`` (a predicted diffuse albedo), the albedo shading: 0.3 log(luminance /
-      (diffuse luminance x falloff)), within +-``MAX_ALBEDO_SHADING``. For a Lambertian sample it
-      is log(n . l / l_z) where the albedo is right: the relief's own term, the colours divided
-      out by what the rest of the network made of them (1).
+    - 3 l_x and 3 l_y, the unit vector from each pixel's point towards the flash (2).
 
     Args:
         photo: (B, 3, H, W) linear, clipped to [0, 1]; lights: (B, 3) flash positions [patch half-widths].
-        diffuse: (B, 3, H, W) diffuse albedo [0, 1], or None.
 
     Returns:
-        (B, relief_channels(diffuse is not None), H, W).
+        (B, RELIEF_CHANNELS, H, W).
     """
     batch, _, height, width = photo.shape
     photo = photo.clamp(0.0, 1.0)
@@ -208,24 +192,17 @@ def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = consta
     points = geometry.pixel_points(height, width, device=photo.device, dtype=photo.dtype)[None] * extent
     towards = lights.to(photo).view(batch, 3, 1, 1) - points
     direction = towards / geometry.vector_length(towards, dim=1, keepdim=True)
-    channels = [log_compress(photo) * 2.0 - 1.0, 0.3 * shading, highpass, 3.0 * direction[:, :2]]
-    if diffuse is not None:
-        albedo = diffuse.to(photo).mean(dim=1, keepdim=True) * falloff
-        ratio = torch.log(photo.mean(dim=1, keepdim=True) + LOG_EPS) - torch.log(albedo + LOG_EPS)
-        channels.append((0.3 * ratio).clamp(-MAX_ALBEDO_SHADING, MAX_ALBEDO_SHADING))
-    return torch.cat(channels, dim=1)
+    return torch.cat([log_compress(photo) * 2.0 - 1.0, 0.3 * shading, highpass, 3.0 * direction[:, :2]], dim=1)
 
 
 def octave_relief_inputs(photo: torch.Tensor, lights: torch.Tensor, octaves: int,
                          fov: float = constants.DEFAULT_FOV_DEG, convention: str = constants.DEFAULT_CONVENTION,
-                         extent: float = 1.0, diffuse: torch.Tensor | None = None) -> list[torch.Tensor]:
+                         extent: float = 1.0) -> list[torch.Tensor]:
     """``relief_inputs`` of the photo (B, 3, H, W) and of the photo area-averaged to 1/2, 1/4, ...
-    of its size, ``octaves`` in all (``NetworkConfig.normal_unit_octaves``); the diffuse, where
-    given, averaged alike. The k-th is (B, relief channels, H / 2^k, W / 2^k)."""
-    def averaged(image: torch.Tensor | None, octave: int) -> torch.Tensor | None:
-        return torch.nn.functional.avg_pool2d(image, 2**octave) if octave and image is not None else image
-
-    return [relief_inputs(averaged(photo, octave), lights, fov, convention, extent, diffuse=averaged(diffuse, octave))
+    of its size, ``octaves`` in all (``NetworkConfig.normal_unit_octaves``). The k-th is
+    (B, RELIEF_CHANNELS, H / 2^k, W / 2^k)."""
+    return [relief_inputs(torch.nn.functional.avg_pool2d(photo, 2**octave) if octave else photo, lights, fov,
+                          convention, extent)
             for octave in range(octaves)]
 
 

@@ -30,8 +30,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from .. import constants, geometry
-from .inputs import (EXTRA_INPUTS, RELIEF_DIRECTION_CHANNEL, ModelInfo, decode_photo, input_channels,
-                     octave_relief_inputs, relief_channels)
+from ..resampling import exact_in_bands, upsample_bilinear, upsampled_rows
+from .inputs import EXTRA_INPUTS, RELIEF_CHANNELS, ModelInfo, decode_photo, input_channels, octave_relief_inputs
 from .nafnet import NAFNet
 
 
@@ -107,12 +107,6 @@ class NetworkConfig:
     """NAF blocks at the bottom of the normal unit (1/16 of the resolution with four levels), where
     it sees the broad relief."""
 
-    normal_unit_albedo: bool = False
-    """Give the normal unit one more input: the photo's shading with the network's own diffuse
-    prediction divided out (``relief_inputs`` with ``diffuse``), so that the unit need not tell
-    colour from relief with its own few features. The diffuse is blended from the bases and local
-    deviations first (the unit changes only the normal), without a gradient through it."""
-
     normal_unit_octaves: tuple[float, ...] = (1.0,)
     """Weights of the normal unit's slope by octave: the unit also runs on the photo area-averaged
     to 1/2, 1/4, ... of the network's resolution (one entry each after the first), and the slopes,
@@ -123,21 +117,12 @@ class NetworkConfig:
     normal_slope_scaled: bool = False
     """Add the normal unit's slope to each basis's normal made unit (the slope scaled by the length
     of global plus deviation before the sum is made unit), so that it tilts every basis as it tilts
-    a flat unit normal: as the normal pool trains the unit (``train.normals_over_flat``). False
+    a flat unit normal: as the normal pool trains the unit (``train.losses.normals_over_flat``). False
     (checkpoints before 2026-12-01): added to the sum as it is, whose length the shipped local unit
     makes about 1.7 (its deviations' z saturates at +1), which weakened the unit's relief by as
     much."""
 
-    normal_booster_width: int = 0
-    """Channels of the first level of a second normal unit beside the first (0: none): the same
-    levels, blocks and inputs, its raw slope added to the first's before their tanh, its last
-    convolution starting at zero. A checkpoint's network given one computes what it did until
-    trained, so the relief gains capacity without losing what the first unit learnt (widening the
-    first would not: its LayerNorms see the added channels)."""
-
     def __post_init__(self):
-        if self.normal_booster_width and not self.normal_unit_width:
-            raise ValueError("the second normal unit (normal_booster_width) adds to the first: it needs normal_unit_width")
         unknown = sorted(set(self.extra_inputs) - set(EXTRA_INPUTS))
         if unknown:
             raise ValueError(f"unknown extra inputs {unknown}; expected some of {list(EXTRA_INPUTS)}")
@@ -162,14 +147,6 @@ class NetworkConfig:
     def stride(self) -> int:
         """Input sizes must be multiples of this [pixels]."""
         return 2 ** len(self.encoder_channels)
-
-
-def normal_unit(width: int, blocks: tuple[int, ...] = (1, 1, 1, 1), middle_blocks: int = 2,
-                albedo: bool = False) -> NAFNet:
-    """The normal unit's NAFNet (``NetworkConfig.normal_unit_width``, ``normal_unit_blocks``,
-    ``normal_unit_middle_blocks``, ``normal_unit_albedo``): the relief inputs to the normal's x and
-    y slope, before their tanh."""
-    return NAFNet(relief_channels(albedo), 2, width, tuple(blocks), middle_blocks, tuple(reversed(blocks)), 3)
 
 
 PRESETS = {
@@ -403,40 +380,11 @@ def streamed_blend(weights: torch.Tensor, global_bases: torch.Tensor, deviations
     return weighted_sum(weights.unbind(1), bases)
 
 
-def upsample_bilinear(value: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(..., h, w) to (..., height, width), bilinear (half-pixel centres), every leading entry apart."""
-    flat = value.reshape(value.shape[0], -1, *value.shape[-2:])
-    big = F.interpolate(flat, size=(height, width), mode="bilinear", align_corners=False)
-    return big.reshape(*value.shape[:-2], height, width)
-
-
 #: Output pixels ``maps_at`` builds at a time, in bands of whole rows, when it can: a band of
 #: every basis stays in the cache instead of ten full-size passes through memory each. On this
 #: machine (medians of 5): 1024 px 0.55 -> 0.30 s, 2048 px 2.3 -> 1.2 s; a quarter of this band
 #: or twice it was slower at 2048 px.
 BAND_PIXELS = 262144
-
-
-def exact_in_bands(rows: int, height: int) -> bool:
-    """Whether ``upsampled_rows`` can upsample ``rows`` rows to ``height``: the output rows' source
-    positions, (y + 1/2) rows / height - 1/2, and so their weights, lose nothing to rounding when a
-    band shifts them by whole input rows where ``height`` is a power-of-two multiple of ``rows``."""
-    factor = height // rows
-    return factor * rows == height and factor & (factor - 1) == 0
-
-
-def upsampled_rows(value: torch.Tensor, height: int, width: int, start: int, stop: int) -> torch.Tensor:
-    """Rows ``start:stop`` of ``upsample_bilinear(value, height, width)`` for (B, C, h, w) with
-    ``exact_in_bands(h, height)``, interpolated from the input rows they need alone. The same
-    weights times the same values, but torch's kernel does not always round its sums alike in
-    outputs of other shapes: equal to float rounding (1e-7), to the bit for a band of every row."""
-    rows = value.shape[-2]
-    factor = height // rows
-    # One input row more on each side: a band's first and last output rows interpolate from it.
-    first, last = max(0, start // factor - 1), min(rows, -(-stop // factor) + 1)
-    band = F.interpolate(value[..., first:last, :].contiguous(), size=((last - first) * factor, width),
-                         mode="bilinear", align_corners=False)
-    return band[..., start - first * factor:stop - first * factor, :]
 
 
 @dataclass(frozen=True, eq=False)
@@ -565,12 +513,6 @@ class DeepBasisOutput:
         return DeepBasisOutput(**values, extras={key: apply(value) for key, value in self.extras.items()})
 
 
-#: Moved copies of a photo ``DeepBasisNet.symmetrised`` runs through the network at a time. A
-#: capture's prediction at 128 px on 2 cores (8 symmetries, the shipped model, medians of 7): chunks
-#: of 1 / 2 / 4 / 8 took 578 / 412 - 430 / 340 - 383 / 441 - 463 ms (one copy alone: 90 ms).
-SYMMETRY_CHUNK = 4
-
-
 class DeepBasisNet(nn.Module):
     """The DeepBasis network (see the module docstring)."""
 
@@ -594,14 +536,10 @@ class DeepBasisNet(nn.Module):
             self.local_unit = NAFNet(local_in, n * constants.BASIS_CHANNELS, config.local_width,
                                      config.local_encoder_blocks, config.local_middle_blocks, config.local_decoder_blocks,
                                      config.local_ending_kernel)
-        if config.normal_unit_width:
-            self.normal_unit = normal_unit(config.normal_unit_width, config.normal_unit_blocks,
-                                           config.normal_unit_middle_blocks, config.normal_unit_albedo)
-        if config.normal_booster_width:
-            self.normal_booster = normal_unit(config.normal_booster_width, config.normal_unit_blocks,
-                                              config.normal_unit_middle_blocks, config.normal_unit_albedo)
-            nn.init.zeros_(self.normal_booster.ending.weight)
-            nn.init.zeros_(self.normal_booster.ending.bias)
+        if config.normal_unit_width:  # the relief inputs to the normal's x and y slope, before their tanh
+            blocks = tuple(config.normal_unit_blocks)
+            self.normal_unit = NAFNet(RELIEF_CHANNELS, 2, config.normal_unit_width, blocks,
+                                      config.normal_unit_middle_blocks, tuple(reversed(blocks)), 3)
 
     def forward(self, inputs: torch.Tensor, lights: torch.Tensor | None = None,
                 fov: float = constants.DEFAULT_FOV_DEG, with_normal_unit: bool = True,
@@ -617,114 +555,18 @@ class DeepBasisNet(nn.Module):
             return stage
         deviations = self.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
         if with_normal_unit and hasattr(self, "normal_unit"):
-            deviations = add_slope(stage.global_bases, deviations, self.normal_slope(stage, deviations, lights, fov),
+            deviations = add_slope(stage.global_bases, deviations, self.normal_slope(stage, lights, fov),
                                    self.config.normal_slope_scaled)
         return DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations, error=stage.error,
                                           extras=stage.extras)
 
     def symmetrised(self, inputs: torch.Tensor, lights: torch.Tensor | None, fov: float = constants.DEFAULT_FOV_DEG,
                     with_normal_unit: bool = True, symmetries: int = 8) -> DeepBasisOutput:
-        """``forward`` averaged over ``symmetries`` turns and mirrorings of the square sample
-        (``model.symmetry``; 8 needs square inputs). The network runs on batches of the moved
-        inputs and flashes (``SYMMETRY_CHUNK`` copies at a time); each part of its answer is moved
-        back and averaged slot by slot:
+        """``forward`` averaged over ``symmetries`` turns and mirrorings of the square sample:
+        ``model.symmetry.symmetrised_prediction`` (8 needs square inputs)."""
+        from .symmetry import symmetrised_prediction
 
-        - the weights, and the diffuse, roughness and specular of the global bases and of the
-          deviations, as they are;
-        - the normals of the bases as vector fields: each basis's whole normal, global plus
-          deviation (the sum ``forward`` adds the slope to and then makes unit), is turned back and
-          averaged, and kept as a deviation from the global normals of the photo as it is. The
-          global unit gives a slot the same normal whichever way the photo is turned (it moves by
-          about 0.004 when the photo does; turning it back would move it by 0.2 - 0.6), so its
-          normals cannot be averaged apart from the deviations that turn them;
-        - the normal unit's slope, shared by the bases, averaged apart and added after.
-
-        With one symmetry (the identity alone) this is ``forward`` to float rounding.
-
-        Without a local unit the global normals, all there is, are turned back and averaged.
-
-        The result is a basis output like any other (its global bases can be refined), without the
-        per-pixel bases, which only training reads: this is for inference. Every input
-        channel must move with the photo: the photo, its log, the lighting mark and the
-        ``extra_inputs`` do, made pixel by pixel from the photo and the flash."""
-        from .symmetry import sum_moved_back, symmetry_group
-
-        group = symmetry_group(symmetries, *inputs.shape[-2:])
-        batch = inputs.shape[0]
-        sums, identity_normals = {}, None
-        # The normal unit's relief inputs are made from the photo and the flash alone (unless they
-        # take the predicted albedo): once for every symmetry, after the chunks.
-        slope_apart = with_normal_unit and hasattr(self, "normal_unit") and not self.config.normal_unit_albedo
-        # A few moved copies at a time: at 128 px a batch of 8 runs slower per photo than one of 4
-        # (the activations leave the cache), and fewer of them are held at once.
-        for start in range(0, len(group), SYMMETRY_CHUNK):
-            chunk = group[start:start + SYMMETRY_CHUNK]
-            moved_lights = None if lights is None else torch.cat([s.vectors(lights, dim=1) for s in chunk])
-            parts = self._moved_parts(torch.cat([s.image(inputs) for s in chunk]), moved_lights, fov,
-                                      with_normal_unit and not slope_apart)
-            if identity_normals is None and "global_bases" in parts:
-                identity_normals = parts["global_bases"][0][:batch, :, constants.NORMAL]
-            for name, (value, kind) in parts.items():
-                total = sum_moved_back(chunk, value, kind)
-                sums[name] = total if name not in sums else sums[name] + total
-        mean = {name: total / len(group) for name, total in sums.items()}
-        if slope_apart:
-            mean["slope"] = self.symmetrised_slope(inputs, lights, fov, group)
-        if "signed" in mean:  # a direct network: its maps
-            return DeepBasisOutput(maps=to_maps(mean["signed"]), signed=mean["signed"])
-        reflectance = mean["global_bases"][:, :, constants.REFLECTANCE]
-        if "basis_normals" not in mean:  # no local unit: the global normals are all there is, turned back
-            global_bases = torch.cat([mean["global_bases"][:, :, constants.NORMAL], reflectance], dim=2)
-            return DeepBasisOutput.from_bases(mean["weights"], normalize_basis_normals(global_bases, dim=2))
-        # The normals of the photo as it is; the bases' whole normals averaged, kept as deviations from them.
-        global_bases = torch.cat([identity_normals, reflectance], dim=2)
-        deviations = torch.cat([mean["basis_normals"] - identity_normals[..., None, None],
-                                mean["reflectance_deviations"]], dim=2)
-        if "slope" in mean:
-            deviations = add_slope(global_bases, deviations, mean["slope"], self.config.normal_slope_scaled)
-        return DeepBasisOutput.from_bases(mean["weights"], global_bases, deviations, keep_bases=False,
-                                          error=mean["error"])
-
-    def symmetrised_slope(self, inputs: torch.Tensor, lights: torch.Tensor, fov: float,
-                          group: tuple) -> torch.Tensor:
-        """The normal unit's slope (B, 2, H, W) for ``inputs`` (B, C, H, W) averaged over the
-        symmetries of ``group``, for a unit without the albedo input. Its relief inputs are made
-        pixel by pixel from the photo and the flash, with a symmetric blur, so the moved photo's are
-        the photo's moved (to float rounding): they are made once, of the photo as it is, and
-        moved. All the moved copies then go through the unit as one batch, which the unit, unlike
-        the rest of the network, runs quicker per photo than two of 4. Per prediction of the shipped
-        model at 128 px on two cores: the relief inputs 41 - 48 -> 13 - 15 ms, the unit 231 - 258
-        -> 201 - 224 ms."""
-        from .symmetry import sum_moved_back
-
-        reliefs = self.relief_inputs(decode_photo(inputs), lights.view(inputs.shape[0], 3), fov)
-        moved = [torch.cat([symmetry.image_with_vector(relief, RELIEF_DIRECTION_CHANNEL) for symmetry in group])
-                 .to(inputs.dtype) for relief in reliefs]
-        return sum_moved_back(group, self.octave_slope(moved), "field") / len(group)
-
-    def _moved_parts(self, inputs: torch.Tensor, lights: torch.Tensor | None, fov: float,
-                     with_normal_unit: bool) -> dict[str, tuple[torch.Tensor, str]]:
-        """What ``symmetrised`` averages of the network's answer to (moved) inputs, by name, each
-        with how it moves (``model.symmetry._MOVES``): the signed maps of a direct network; else
-        the weights and the global bases, and with a local unit each basis's normal sum (global
-        plus deviation, (B, N, 3, H, W)) and reflectance deviations ((B, N, 7, H, W)), the normal
-        unit's slope and the error map."""
-        stage = self.basis_stage(inputs, lights, fov)
-        if isinstance(stage, DeepBasisOutput):
-            if stage.weights is None:
-                return {"signed": (stage.signed_maps, "field")}
-            return {"weights": (stage.weights, "image"), "global_bases": (stage.global_bases, "bases")}
-        deviations = self.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
-        # Global plus deviation as they are (not made unit): the slope is added to that sum, as in
-        # ``forward``. The normals and the reflectance apart: only the normals' x and y turn.
-        normals = stage.global_bases[:, :, constants.NORMAL, None, None] + deviations[:, :, constants.NORMAL]
-        parts = {"weights": (stage.weights, "image"), "global_bases": (stage.global_bases, "bases"),
-                 "basis_normals": (normals, "basis_field"),
-                 "reflectance_deviations": (deviations[:, :, constants.REFLECTANCE], "image"),
-                 "error": (stage.error, "image")}
-        if with_normal_unit and hasattr(self, "normal_unit"):
-            parts["slope"] = (self.normal_slope(stage, deviations, lights, fov), "field")
-        return parts
+        return symmetrised_prediction(self, inputs, lights, fov, with_normal_unit, symmetries)
 
     def basis_stage(self, inputs: torch.Tensor, lights: torch.Tensor | None,
                     fov: float = constants.DEFAULT_FOV_DEG) -> BasisStage | DeepBasisOutput:
@@ -777,27 +619,19 @@ class DeepBasisNet(nn.Module):
         deviations = torch.tanh(self.local_unit(local_inputs, planes=global_bases.reshape(batch, -1)))
         return deviations.view(batch, n, constants.BASIS_CHANNELS, height, width)
 
-    def normal_slope(self, stage: BasisStage, deviations: torch.Tensor, lights: torch.Tensor,
+    def normal_slope(self, stage: BasisStage, lights: torch.Tensor,
                      fov: float = constants.DEFAULT_FOV_DEG) -> torch.Tensor:
         """The normal unit's slope, (B, 2, H, W): the x and y it adds to every basis's normal
         (``slope_change``), summed over its octaves (``NetworkConfig.normal_unit_octaves``)."""
-        config = self.config
-        batch = stage.photo.shape[0]
-        diffuse = None
-        if config.normal_unit_albedo:  # the unit leaves the diffuse as it is: blend it first
-            with torch.no_grad():
-                diffuse = DeepBasisOutput.from_bases(stage.weights, stage.global_bases, deviations,
-                                                     keep_bases=False).maps[:, constants.DIFFUSE].float()
-        reliefs = self.relief_inputs(stage.photo, lights.view(batch, 3), fov, diffuse)
+        reliefs = self.relief_inputs(stage.photo, lights.view(stage.photo.shape[0], 3), fov)
         return self.octave_slope([relief.to(stage.local_inputs.dtype) for relief in reliefs])
 
-    def relief_inputs(self, photo: torch.Tensor, lights: torch.Tensor, fov: float,
-                      diffuse: torch.Tensor | None = None) -> list[torch.Tensor]:
+    def relief_inputs(self, photo: torch.Tensor, lights: torch.Tensor, fov: float) -> list[torch.Tensor]:
         """The normal unit's inputs at each of its octaves (``octave_relief_inputs`` with this
         network's octaves, convention and plane extent), made in float32 whatever the autocast."""
         config = self.config
         return octave_relief_inputs(photo.float(), lights.float(), len(config.normal_unit_octaves), fov,
-                                    config.convention, config.plane_extent, diffuse=diffuse)
+                                    config.convention, config.plane_extent)
 
     def octave_slope(self, reliefs: list[torch.Tensor]) -> torch.Tensor:
         """The normal unit's slope (B, 2, H, W) from its relief inputs at each octave
@@ -809,16 +643,10 @@ class DeepBasisNet(nn.Module):
         for octave, (relief, weight) in enumerate(zip(reliefs, self.config.normal_unit_octaves, strict=True)):
             if weight == 0:
                 continue
-            slope = torch.tanh(self.normal_raw(relief))
+            slope = torch.tanh(self.normal_unit(relief))
             slope = weight * (upsample_bilinear(slope, height, width) if octave else slope)
             total = slope if total is None else total + slope
         return total
-
-    def normal_raw(self, relief: torch.Tensor) -> torch.Tensor:
-        """The normal units' slope before its tanh, (B, 2, H, W), from their relief inputs: the
-        first unit's, plus the second's (``normal_booster_width``) where there is one."""
-        raw = self.normal_unit(relief)
-        return raw + self.normal_booster(relief) if hasattr(self, "normal_booster") else raw
 
 
 def slope_change(slope: torch.Tensor) -> torch.Tensor:

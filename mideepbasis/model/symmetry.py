@@ -17,6 +17,10 @@ from dataclasses import dataclass
 
 import torch
 
+from .. import constants
+from .inputs import RELIEF_DIRECTION_CHANNEL, decode_photo
+from .network import DeepBasisNet, DeepBasisOutput, add_slope, normalize_basis_normals, to_maps
+
 
 @dataclass(frozen=True)
 class Symmetry:
@@ -177,3 +181,111 @@ def sum_moved_back(group: tuple[Symmetry, ...], value: torch.Tensor, kind: str) 
 def mean_moved_back(group: tuple[Symmetry, ...], value: torch.Tensor, kind: str) -> torch.Tensor:
     """``sum_moved_back`` divided by the number of symmetries: their mean, (B, ...)."""
     return sum_moved_back(group, value, kind) / len(group)
+
+
+# --- the symmetrised prediction -------------------------------------------------------------------
+
+#: Moved copies of a photo ``symmetrised_prediction`` runs through the network at a time. A
+#: capture's prediction at 128 px on 2 cores (8 symmetries, the shipped model, medians of 7): chunks
+#: of 1 / 2 / 4 / 8 took 578 / 412 - 430 / 340 - 383 / 441 - 463 ms (one copy alone: 90 ms).
+SYMMETRY_CHUNK = 4
+
+
+def symmetrised_prediction(network: DeepBasisNet, inputs: torch.Tensor, lights: torch.Tensor | None,
+                           fov: float = constants.DEFAULT_FOV_DEG, with_normal_unit: bool = True,
+                           symmetries: int = 8) -> DeepBasisOutput:
+    """``network``'s answer for ``inputs`` (B, C, H, W) under flashes at ``lights`` (B, 3) averaged
+    over ``symmetries`` turns and mirrorings of the square sample (``SYMMETRY_SETS``; 8 needs
+    square inputs); ``DeepBasisNet.symmetrised``. The network runs on batches of the moved inputs
+    and flashes (``SYMMETRY_CHUNK`` copies at a time); each part of its answer is moved back and
+    averaged slot by slot:
+
+    - the weights, and the diffuse, roughness and specular of the global bases and of the
+      deviations, as they are;
+    - the normals of the bases as vector fields: each basis's whole normal, global plus
+      deviation (the sum ``forward`` adds the slope to and then makes unit), is turned back and
+      averaged, and kept as a deviation from the global normals of the photo as it is. The
+      global unit gives a slot the same normal whichever way the photo is turned (it moves by
+      about 0.004 when the photo does; turning it back would move it by 0.2 - 0.6), so its
+      normals cannot be averaged apart from the deviations that turn them;
+    - the normal unit's slope, shared by the bases, averaged apart and added after
+      (``symmetrised_slope``).
+
+    With one symmetry (the identity alone) this is ``forward`` to float rounding.
+
+    Without a local unit the global normals, all there is, are turned back and averaged.
+
+    The result is a basis output like any other (its global bases can be refined), without the
+    per-pixel bases, which only training reads: this is for inference. Every input
+    channel must move with the photo: the photo, its log, the lighting mark and the
+    ``extra_inputs`` do, made pixel by pixel from the photo and the flash."""
+    group = symmetry_group(symmetries, *inputs.shape[-2:])
+    batch = inputs.shape[0]
+    sums, identity_normals = {}, None
+    # A few moved copies at a time: at 128 px a batch of 8 runs slower per photo than one of 4
+    # (the activations leave the cache), and fewer of them are held at once.
+    for start in range(0, len(group), SYMMETRY_CHUNK):
+        chunk = group[start:start + SYMMETRY_CHUNK]
+        moved_lights = None if lights is None else torch.cat([s.vectors(lights, dim=1) for s in chunk])
+        parts = _moved_parts(network, torch.cat([s.image(inputs) for s in chunk]), moved_lights, fov)
+        if identity_normals is None and "global_bases" in parts:
+            identity_normals = parts["global_bases"][0][:batch, :, constants.NORMAL]
+        for name, (value, kind) in parts.items():
+            total = sum_moved_back(chunk, value, kind)
+            sums[name] = total if name not in sums else sums[name] + total
+    mean = {name: total / len(group) for name, total in sums.items()}
+    # The normal unit's relief inputs are made from the photo and the flash alone: once for every
+    # symmetry, after the chunks.
+    if with_normal_unit and hasattr(network, "normal_unit"):
+        mean["slope"] = symmetrised_slope(network, inputs, lights, fov, group)
+    if "signed" in mean:  # a direct network: its maps
+        return DeepBasisOutput(maps=to_maps(mean["signed"]), signed=mean["signed"])
+    reflectance = mean["global_bases"][:, :, constants.REFLECTANCE]
+    if "basis_normals" not in mean:  # no local unit: the global normals are all there is, turned back
+        global_bases = torch.cat([mean["global_bases"][:, :, constants.NORMAL], reflectance], dim=2)
+        return DeepBasisOutput.from_bases(mean["weights"], normalize_basis_normals(global_bases, dim=2))
+    # The normals of the photo as it is; the bases' whole normals averaged, kept as deviations from them.
+    global_bases = torch.cat([identity_normals, reflectance], dim=2)
+    deviations = torch.cat([mean["basis_normals"] - identity_normals[..., None, None],
+                            mean["reflectance_deviations"]], dim=2)
+    if "slope" in mean:
+        deviations = add_slope(global_bases, deviations, mean["slope"], network.config.normal_slope_scaled)
+    return DeepBasisOutput.from_bases(mean["weights"], global_bases, deviations, keep_bases=False,
+                                      error=mean["error"])
+
+
+def symmetrised_slope(network: DeepBasisNet, inputs: torch.Tensor, lights: torch.Tensor, fov: float,
+                      group: tuple[Symmetry, ...]) -> torch.Tensor:
+    """``network``'s normal unit's slope (B, 2, H, W) for ``inputs`` (B, C, H, W) averaged over
+    the symmetries of ``group``. Its relief inputs are made pixel by pixel from the photo and the
+    flash, with a symmetric blur, so the moved photo's are the photo's moved (to float rounding):
+    they are made once, of the photo as it is, and moved. All the moved copies then go through the
+    unit as one batch, which the unit, unlike the rest of the network, runs quicker per photo than
+    two of 4. Per prediction of the shipped model at 128 px on two cores: the relief inputs
+    41 - 48 -> 13 - 15 ms, the unit 231 - 258 -> 201 - 224 ms."""
+    reliefs = network.relief_inputs(decode_photo(inputs), lights.view(inputs.shape[0], 3), fov)
+    moved = [torch.cat([symmetry.image_with_vector(relief, RELIEF_DIRECTION_CHANNEL) for symmetry in group])
+             .to(inputs.dtype) for relief in reliefs]
+    return sum_moved_back(group, network.octave_slope(moved), "field") / len(group)
+
+
+def _moved_parts(network: DeepBasisNet, inputs: torch.Tensor, lights: torch.Tensor | None,
+                 fov: float) -> dict[str, tuple[torch.Tensor, str]]:
+    """What ``symmetrised_prediction`` averages of the network's answer to (moved) inputs, by name,
+    each with how it moves (``_MOVES``): the signed maps of a direct network; else the weights and
+    the global bases, and with a local unit each basis's normal sum (global plus deviation,
+    (B, N, 3, H, W)), its reflectance deviations ((B, N, 7, H, W)) and the error map. (The normal
+    unit's slope is averaged apart: ``symmetrised_slope``.)"""
+    stage = network.basis_stage(inputs, lights, fov)
+    if isinstance(stage, DeepBasisOutput):
+        if stage.weights is None:
+            return {"signed": (stage.signed_maps, "field")}
+        return {"weights": (stage.weights, "image"), "global_bases": (stage.global_bases, "bases")}
+    deviations = network.local_deviations(stage.local_inputs, stage.weights, stage.global_bases)
+    # Global plus deviation as they are (not made unit): the slope is added to that sum, as in
+    # ``forward``. The normals and the reflectance apart: only the normals' x and y turn.
+    normals = stage.global_bases[:, :, constants.NORMAL, None, None] + deviations[:, :, constants.NORMAL]
+    return {"weights": (stage.weights, "image"), "global_bases": (stage.global_bases, "bases"),
+            "basis_normals": (normals, "basis_field"),
+            "reflectance_deviations": (deviations[:, :, constants.REFLECTANCE], "image"),
+            "error": (stage.error, "image")}

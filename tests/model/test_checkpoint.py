@@ -104,6 +104,58 @@ def test_the_shipped_model_fits_the_package_budget_and_loads_as_float32():
     assert all(parameter.dtype == torch.float32 for parameter in load_model().parameters())
 
 
+#: Sums of the shipped model's maps (normal, diffuse, roughness, specular) for ``fixed_photo``, plain
+#: and averaged over 8 symmetries, as the code before the removal of its unused options computed
+#: them (to the bit on this project's machines; other processors round their kernels differently).
+SHIPPED_MAP_SUMS = {1: (4051.2413493461772, 4399.124441057444, 2671.3704540729523, 514.1393748521805),
+                    8: (4085.042425733307, 4396.727874964476, 2654.3927993178368, 512.9961250126362)}
+
+
+def fixed_photo() -> tuple[torch.Tensor, torch.Tensor]:
+    """A smooth 64 px photo (1, 3, 64, 64) and its flash (1, 3), made without random numbers."""
+    y, x = torch.meshgrid(torch.linspace(-1, 1, 64), torch.linspace(-1, 1, 64), indexing="ij")
+    photo = torch.stack([0.35 + 0.2 * torch.sin(5 * x) * torch.cos(3 * y), 0.3 + 0.15 * torch.cos(4 * x + 2 * y),
+                         0.25 + 0.1 * torch.sin(7 * y)])[None]
+    return photo, geometry.light_positions(torch.tensor([[0.2, -0.1]]))
+
+
+def test_the_shipped_model_predicts_as_it_did():
+    from mideepbasis.model.inputs import encode_inputs
+
+    photo, lights = fixed_photo()
+    model = load_model()
+    with torch.no_grad():
+        for symmetries, expected in SHIPPED_MAP_SUMS.items():
+            maps = model(encode_inputs(photo, lights), lights, symmetries=symmetries).maps.double()
+            sums = [float(maps[:, channels].sum()) for channels in (slice(0, 3), slice(3, 6), slice(6, 7), slice(7, 10))]
+            assert sums == pytest.approx(expected, rel=1e-5), symmetries
+
+
+def test_a_network_setting_since_removed_loads_where_off_and_is_refused_otherwise(saved, tmp_path):
+    from mideepbasis.configs import REMOVED_FIELDS
+    from mideepbasis.model.checkpoint import network_config_from_dict, network_config_to_dict
+
+    model, path = saved
+    # As a checkpoint of an earlier version stores them: at their off values, read as if absent.
+    earlier = rewrite(path, tmp_path / "earlier.safetensors",
+                      edit_document=lambda d: d["network"].update(REMOVED_FIELDS["NetworkConfig"]))
+    loaded = load_model(earlier)
+    assert loaded.config == model.config
+    assert all(torch.equal(value, model.state_dict()[name]) for name, value in loaded.state_dict().items())
+    stored = network_config_to_dict(model.config)
+    assert network_config_from_dict({**stored, "normal_unit_albedo": False}) == model.config
+    # At another value the network cannot be what was trained: refused in one line, the setting named.
+    boosted = rewrite(path, tmp_path / "boosted.safetensors",
+                      edit_document=lambda d: d["network"].update(normal_unit_width=16, normal_booster_width=16))
+    with pytest.raises(CheckpointError) as error:
+        load_model(boosted)
+    message = str(error.value)
+    assert message == (f"{boosted}: uses normal_booster_width = 16, which this version no longer has "
+                       "(it reads only 0, the setting's off value)")
+    with pytest.raises(CheckpointError, match="^m: uses normal_unit_albedo = True, which this version no longer has"):
+        network_config_from_dict({**stored, "normal_unit_albedo": True}, "m")
+
+
 def test_wrong_version_is_a_clear_error(saved, tmp_path):
     _, path = saved
     bad = rewrite(path, tmp_path / "v9.safetensors", edit_document=lambda d: d.update(version=9))

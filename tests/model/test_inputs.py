@@ -88,33 +88,3 @@ def test_relief_inputs_by_hand():
     torch.testing.assert_close(relief[0, 5:, row, col], 3 * (towards / towards.norm())[:2])
     # Under a centred flash the pixels left of the centre see the flash to their right (+x).
     assert (relief[1, 5, :, :8] > 0).all() and (relief[1, 5, :, 8:] < 0).all()
-
-
-def test_the_albedo_shading_leaves_the_relief_of_a_lambertian_sample():
-    from mideepbasis.render import reference
-
-    lights = geometry.light_positions(torch.tensor([[0.3, -0.2]]))
-    size = 16
-    # A Lambertian sample (specular 0) whose normals lean 45 deg away from the flash on the left half.
-    tilt = math.radians(-45.0)
-    normal = torch.zeros(1, 3, size, size)
-    normal[:, 2] = 1.0
-    normal[:, 0, :, :8], normal[:, 2, :, :8] = math.sin(tilt), math.cos(tilt)
-    diffuse = torch.rand(1, 3, size, size, generator=torch.Generator().manual_seed(4)) * 0.3 + 0.6
-    maps = torch.cat([normal, diffuse, torch.ones(1, 1, size, size), torch.zeros(1, 3, size, size)], dim=1)
-    photo = reference.render_flash(maps, lights[:, None], math.pi * constants.camera_height(45.0) ** 2,
-                                   "physical")[:, 0]
-    assert photo.max() < 1.0
-    relief = inputs.relief_inputs(photo, lights, diffuse=diffuse)
-    assert relief.shape == (1, inputs.relief_channels(True), size, size) == (1, 8, size, size)
-    torch.testing.assert_close(relief[:, :7], inputs.relief_inputs(photo, lights))
-    # Right half flat: nothing left once the albedo and the falloff are divided out (up to the log's epsilon).
-    albedo_shading = relief[0, 7]
-    assert albedo_shading[:, 8:].abs().max() < 0.01
-    # Left half: 0.3 log(n . l / l_z), the tilt's own shading, whatever the colours.
-    points = geometry.pixel_points(size, size)
-    towards = lights[0].view(3, 1, 1) - points
-    direction = towards / towards.norm(dim=0, keepdim=True)
-    expected = 0.3 * torch.log((normal[0] * direction).sum(dim=0) / direction[2])
-    torch.testing.assert_close(albedo_shading[:, :8], expected[:, :8], rtol=0.0, atol=0.015)  # the epsilon, where dark
-    assert expected[:, :8].max() < -0.1  # the tilt does show

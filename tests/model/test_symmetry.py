@@ -147,11 +147,11 @@ def test_one_symmetry_through_forward_is_the_plain_network():
 
 @pytest.mark.parametrize("chunk", [1, 3, 8])
 def test_symmetrised_network_in_chunks_is_the_same(monkeypatch, chunk):
-    import mideepbasis.model.network as network_module
+    import mideepbasis.model.symmetry as symmetry_module
 
     network, photo, light = _network_and_photo(16, normal_unit_width=4)
     reference = _predict(network, photo, light, 8)
-    monkeypatch.setattr(network_module, "SYMMETRY_CHUNK", chunk)
+    monkeypatch.setattr(symmetry_module, "SYMMETRY_CHUNK", chunk)
     chunked = _predict(network, photo, light, 8)
     # Convolutions of batches of other sizes round differently (up to 5e-5 seen in the maps).
     torch.testing.assert_close(chunked.maps, reference.maps, atol=1e-4, rtol=0)
@@ -163,6 +163,7 @@ def test_the_slope_averaged_over_the_group_is_each_moved_photos_slope_moved_back
     against the slope of each moved photo under its moved flash, made from its own relief inputs
     and moved back, averaged."""
     from mideepbasis.model.inputs import decode_photo, encode_inputs, octave_relief_inputs
+    from mideepbasis.model.symmetry import symmetrised_slope
 
     network, photo, light = _network_and_photo(16, normal_unit_width=4)
     config = network.config
@@ -176,7 +177,7 @@ def test_the_slope_averaged_over_the_group_is_each_moved_photos_slope_moved_back
                                            len(config.normal_unit_octaves), convention=config.convention,
                                            extent=config.plane_extent)
             expected = expected + symmetry.field(network.octave_slope(reliefs), inverse=True) / len(group)
-        got = network.symmetrised_slope(inputs, light, 45.0, group)
+        got = symmetrised_slope(network, inputs, light, 45.0, group)
     assert got.shape == (1, 2, 16, 16) and expected.abs().max() > 0.1
     torch.testing.assert_close(got, expected, atol=1e-4, rtol=0)  # the relief inputs' rounding, amplified
 

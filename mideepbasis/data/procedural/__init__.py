@@ -78,20 +78,6 @@ class GeneratorConfig:
     coarse_relief_probability: float = 0.7
     """Chance of the broad undulation of ``coarse_relief_tilt_deg``."""
 
-    low_relief_probability: float = 0.0
-    """Chance that the whole relief (undulation included) is scaled down to a mean tilt drawn from
-    ``low_relief_tilt_deg``, under the same colours: a textured but nearly flat surface (printed
-    paper, a smooth painted wall), where the colours say nothing of the relief."""
-
-    low_relief_tilt_deg: tuple[float, float] = (0.3, 2.4)
-    """Range (log-uniform) of the mean tilt [deg] of a low-relief material."""
-
-    relief_inversion_probability: float = 0.0
-    """Chance that the relief is turned inside out (height negated) under the same colours: pale
-    recessed grout, light pores, dark raised flecks. The families mostly darken their hollows, so
-    without it darker nearly always means deeper; in the shared test set the colours' gradient
-    follows the relief's either way (``benchmarks/data.py`` coverage)."""
-
     gloss_probability: float = 0.0
     """Chance that the roughness is scaled by a factor drawn from ``gloss_scale``: the families'
     roughness runs high (median of the material means 0.53, against 0.39 in the shared test
@@ -154,14 +140,10 @@ def generate_surface(seed: int, config: GeneratorConfig = GeneratorConfig(),
         tilt = canvas.loguniform(*config.coarse_relief_tilt_deg)
         height = height + undulation * relief_factor(undulation, tilt, config.tileable, max_factor=1e4)
         provenance["coarse_relief_tilt_deg"] = tilt
-    # Drawn last, for the same reason.
-    if canvas.chance(config.low_relief_probability):
-        tilt = canvas.loguniform(*config.low_relief_tilt_deg)
-        height = height * relief_factor(height, tilt, config.tileable, config.max_relief_factor)
-        provenance["low_relief_tilt_deg"] = tilt
-    if canvas.chance(config.relief_inversion_probability):
-        height = -height
-        provenance["relief_inverted"] = True
+    # Two draws where a removed low-relief chance and a removed relief-inversion chance were drawn
+    # (always off): what is drawn after them, and so every seed's material, stays as it was.
+    canvas.rng.random()
+    canvas.rng.random()
     # The marginals' shifts come last, for the same reason, and leave the relief as it is.
     diffuse, roughness = surface.diffuse, surface.roughness
     if canvas.chance(config.gloss_probability):

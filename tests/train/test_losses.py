@@ -1,0 +1,140 @@
+"""The losses of training by hand, the re-rendering loss's lights and views, the learning-rate
+schedule and the highlight weights of the diffuse loss."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from mideepbasis.data.procedural import GeneratorConfig, generate
+from mideepbasis.data.synth import Variation
+from mideepbasis.model.network import DeepBasisOutput
+from mideepbasis.train import (learning_rate_factor, rendering_loss, sample_render_geometry, saturation_penalty,
+                               variation_consistency_loss)
+
+
+def test_variation_consistency_loss_by_hand():
+    # One material, one basis, 1x1 pixel. The original prediction's basis, varied by xi, is compared
+    # with the varied prediction's basis; plus the L1 of the varied maps against the varied truth.
+    basis = torch.tensor([0.0, 0.0, 1.0, 0.2, -0.2, 0.0, 0.6, -1.0, -1.0, -1.0]).view(1, 1, 10, 1, 1)
+    varied_basis = torch.zeros(1, 1, 10, 1, 1)
+    variation = Variation(rotation=torch.tensor([0.0]), shift=torch.full((1, 7), 0.5))
+    original = DeepBasisOutput(maps=torch.zeros(1, 10, 1, 1), bases=basis)
+    truth = torch.zeros(1, 10, 1, 1)
+    truth[:, 2] = 1.0  # flat normal, every other map 0 (signed: -1)
+    varied = DeepBasisOutput(maps=truth.clone(), bases=varied_basis, signed=torch.zeros(1, 10, 1, 1))
+    loss = variation_consistency_loss(original, varied, variation, truth)
+    # xi on the basis: normal unchanged (rotation 0); others m -> (m + 0.5) / 1.5 in [0, 1] space.
+    expected_basis = [0.0, 0.0, 1.0] + [2 * ((v * 0.5 + 0.5 + 0.5) / 1.5) - 1 for v in (0.2, -0.2, 0.0, 0.6, -1, -1, -1)]
+    consistency = sum(abs(e - 0.0) for e in expected_basis) / 10
+    supervised = (0 + 0 + 1 + 7 * 1) / 10  # signed maps 0 against truth [0, 0, 1, -1 x 7]
+    assert loss.item() == pytest.approx(consistency + supervised, abs=1e-6)
+
+
+def test_saturation_penalty_by_hand():
+    raw = torch.tensor([0.5, -2.0, 3.0, -5.0], requires_grad=True).view(1, 4, 1, 1)
+    penalty = saturation_penalty(raw, limit=2.0)
+    assert penalty.item() == pytest.approx((0 + 0 + 1 ** 2 + 3 ** 2) / 4)
+    (gradient,) = torch.autograd.grad(penalty, raw)
+    # Zero inside the limit; outside, it points away from zero, so descent pulls back into range.
+    assert gradient.flatten().tolist() == pytest.approx([0.0, 0.0, 2 * 1 / 4, -2 * 3 / 4])
+
+
+def test_learning_rate_decays_by_cosine():
+    assert learning_rate_factor(0, 100, 0.01) == 1.0
+    assert learning_rate_factor(99, 100, 0.01) == pytest.approx(0.01)
+    assert learning_rate_factor(49, 100, 0.0) == pytest.approx(0.5 * (1 + math.cos(math.pi * 49 / 99)))
+
+
+def test_learning_rate_warms_up_linearly_then_decays():
+    assert learning_rate_factor(0, 110, 0.01, warmup=10) == pytest.approx(0.1)
+    assert learning_rate_factor(4, 110, 0.01, warmup=10) == pytest.approx(0.5)
+    assert learning_rate_factor(10, 110, 0.01, warmup=10) == 1.0
+    assert learning_rate_factor(109, 110, 0.01, warmup=10) == pytest.approx(0.01)
+
+
+def test_mirror_pairs_put_a_highlight_on_the_sample():
+    lights, views = sample_render_geometry(64, 6, torch.Generator().manual_seed(3))
+    assert lights.shape == views.shape == (64, 6, 3)
+    assert (lights[..., 2] >= 2.0 * 0.15 - 1e-6).all() and (views[..., 2] >= 2.0 * 0.15 - 1e-6).all()
+    assert (torch.linalg.vector_norm(lights, dim=-1) <= 5.0 + 0.5 * 2**0.5 + 1e-5).all()
+    # The last three pairs: the straight line from the light to the view mirrored below the plane
+    # crosses the plane at q, where light and view directions are mirror images about +z.
+    light, view = lights[:, 3:].reshape(-1, 3), views[:, 3:].reshape(-1, 3)
+    below = view * torch.tensor([1.0, 1.0, -1.0])
+    t = light[:, 2] / (light[:, 2] - below[:, 2])
+    q = light + t[:, None] * (below - light)
+    assert q[:, 2].abs().max() < 1e-5 and q[:, :2].abs().max() <= 0.7 + 1e-5
+    to_light = torch.nn.functional.normalize(light - q, dim=-1)
+    to_view = torch.nn.functional.normalize(view - q, dim=-1)
+    assert torch.allclose(to_view, to_light * torch.tensor([-1.0, -1.0, 1.0]), atol=1e-5)
+    # The first three are drawn independently: not mirror pairs.
+    light, view = lights[:, :3].reshape(-1, 3), views[:, :3].reshape(-1, 3)
+    assert ((light[:, :2] + view[:, :2]).abs().sum(-1) > 0.05).float().mean() > 0.9
+
+
+def test_rendering_loss_against_a_hand_computed_reference(restore_render_backend):
+    from mideepbasis import geometry
+    from mideepbasis.render import reference, set_render_backend
+
+    truth = torch.stack([generate(seed, config=GeneratorConfig(size=16)).to_tensor() for seed in range(2)])
+    predicted = truth.clone()
+    predicted[:, 3:6] *= 0.5
+    lights, views = sample_render_geometry(2, 4, torch.Generator().manual_seed(0))
+    intensity = geometry.flash_intensity()
+    expected = (torch.log1p(reference.render_flash(predicted, lights, intensity, views=views))
+                - torch.log1p(reference.render_flash(truth, lights, intensity, views=views))).abs().mean()
+    for backend, tolerance in (("torch", 1e-6), ("mitsuba", 1e-4)):
+        set_render_backend(backend)
+        assert rendering_loss(truth, truth, lights, views).item() == 0.0
+        assert rendering_loss(predicted, truth, lights, views).item() == pytest.approx(expected.item(), rel=tolerance)
+    # Its gradient reaches the normals through the plugin.
+    normals = truth.clone().requires_grad_(True)
+    tilted = torch.cat([normals[:, :3] + torch.tensor([0.2, 0.0, 0.0]).view(1, 3, 1, 1), normals[:, 3:]], 1)
+    rendering_loss(tilted, truth, lights, views).backward()
+    assert normals.grad[:, :3].abs().sum() > 0
+
+
+def test_the_highlight_weights_peak_under_the_flash_and_keep_the_loss_scale():
+    from mideepbasis.train import highlight_weights
+
+    size = 33
+    maps = torch.zeros(2, 10, size, size)
+    maps[:, 2] = 1.0  # flat
+    maps[:, 3:6] = 0.3
+    maps[:, 6] = 0.2
+    maps[0, 7:] = 0.5
+    # Flash straight above the centre: a flat sample mirrors it back from the centre pixel only,
+    # and less the farther a pixel is from it.
+    lights = torch.tensor([[0.0, 0.0, 2.0]]).expand(2, 3)
+    weights = highlight_weights(maps, lights, 8.0, fov=45.0, convention="physical")
+    assert weights.shape == (2, 1, size, size)
+    torch.testing.assert_close(weights.mean(dim=(2, 3)), torch.ones(2, 1))
+    glossy = weights[0, 0]
+    centre = size // 2
+    assert glossy[centre, centre] == glossy.max()  # the brightest 1 % share the full weight
+    row = glossy[centre, centre:]
+    assert bool((row[1:] <= row[:-1] + 1e-6).all()) and row[-1] < 0.5 * row[0]
+    # The brightest 1 % weighs 1 + 8 against 1 for an unlit pixel (before the division by the mean).
+    assert float(glossy.max() / glossy.min()) == pytest.approx(9.0, rel=0.05)
+    # No specular: nothing to weigh.
+    torch.testing.assert_close(weights[1], torch.ones(1, size, size))
+
+
+def test_the_diffuse_weights_weigh_the_diffuse_error_of_each_pixel():
+    from mideepbasis.train import supervised_loss
+
+    truth = torch.full((1, 10, 2, 2), 0.5)
+    predicted = truth.clone()
+    predicted[0, 3, 0, 0] += 0.1  # one diffuse error
+    predicted[0, 6, 1, 1] += 0.1  # one roughness error
+    output = DeepBasisOutput(maps=predicted)
+    weights = torch.ones(1, 1, 2, 2)
+    plain = supervised_loss(output, truth)
+    torch.testing.assert_close(supervised_loss(output, truth, diffuse_weights=weights), plain)
+    weights[0, 0, 0, 0] = 3.0  # the diffuse error counts three times, the roughness's once
+    torch.testing.assert_close(supervised_loss(output, truth, diffuse_weights=weights), 2.0 * plain)
+    weights[0, 0, 0, 0], weights[0, 0, 1, 1] = 1.0, 5.0  # the roughness pixel: its diffuse is right
+    torch.testing.assert_close(supervised_loss(output, truth, diffuse_weights=weights), plain)
