@@ -89,7 +89,7 @@ def _start_worker(model, config, options: SaveOptions, workers: int, parent: int
     import drjit as dr
     import torch
 
-    from .pipeline import Capturer
+    from .capturing.pipeline import Capturer
 
     die_with_parent(parent)
     # Ctrl-C is the main process's to handle: it stops the workers itself.
@@ -108,9 +108,9 @@ def _start_worker(model, config, options: SaveOptions, workers: int, parent: int
 def _capture_one(photo: Path, target: Path) -> BatchItem:
     import drjit as dr
 
-    from ..errors import MideepbasisError
-    from ..export import save_capture
-    from ..outputs import OutputFolder
+    from .errors import MideepbasisError
+    from .export import save_capture
+    from .outputs import OutputFolder
 
     started = time.perf_counter()
     options = _WORKER["options"]
@@ -147,9 +147,9 @@ def check_batch(photos: list[Path], out: Path, model=None, overwrite: bool = Fal
     """Refuse, before any work, a batch whose output folder may not be written (``outputs.check_target``;
     not empty, without ``overwrite``), whose photos share a name (they would share ``out/<name>``)
     or whose model does not load (the workers would each fail to start). Makes ``out``."""
-    from ..errors import InputError
-    from ..model.checkpoint import read_checkpoint, shipped_model_path
-    from ..outputs import check_target, probe_writable
+    from .errors import InputError
+    from .model.checkpoint import read_checkpoint, shipped_model_path
+    from .outputs import check_target, probe_writable
 
     check_target(out, photos)
     if out.is_dir() and any(out.iterdir()) and not overwrite:
@@ -197,8 +197,8 @@ def _run_batch(photos: list[Path], out: Path, model, config, options: SaveOption
     import multiprocessing
     from concurrent.futures.process import BrokenProcessPool
 
-    from ..errors import MideepbasisError
-    from .pipeline import CaptureConfig
+    from .errors import MideepbasisError
+    from .capturing.pipeline import CaptureConfig
 
     config = config or CaptureConfig()
     workers = workers or default_workers(len(photos))

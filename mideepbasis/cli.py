@@ -185,7 +185,7 @@ def _capture_batch(photos: list[Path], args, config) -> int:
     """Several photos: worker processes (``capture.batch``), one line per photo as it completes."""
     from tqdm import tqdm
 
-    from .capturing.batch import SaveOptions, capture_batch
+    from .batch import SaveOptions, capture_batch
 
     failures = 0
     options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles, shape_previews=bool(args.shape_previews))
