@@ -349,6 +349,7 @@ REFINE_LOOP_TOLERANCES = {"bases": 2e-3, "loss": 1e-5}
 
 @pytest.mark.parametrize("options", [{"normals": False}, {"normals": True}, {"normals": False, "prior": 0.5},
                                      {"skip_clipped": True, "achromatic_specular": True},
+                                     {"encoded_loss": True, "prior": 0.2},
                                      {"normals": True, "achromatic_specular": True}])
 def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
     from mideepbasis.capturing import refine as refinement

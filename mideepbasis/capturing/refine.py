@@ -48,14 +48,28 @@ class RefineConfig:
     prior: float = 0.0
     """Weight of the L1 pull of the refined global bases toward the network's (0: none)."""
 
+    moving_maps: tuple[str, ...] = ("diffuse", "roughness", "specular")
+    """The maps (of ``diffuse``, ``roughness``, ``specular``) whose global bases move; the others
+    stay as the network predicted them (the normals move where ``normals``)."""
+
     skip_clipped: bool = False
     """Leave the photo's clipped pixels (a channel at or above ``CLIPPED``, linear) out of the
     loss: they say only that the surface was at least that bright."""
+
+    encoded_loss: bool = False
+    """Compare the render and the photo sRGB-encoded (as the eye and the real-photo protocol do)
+    instead of linear, where the few pixels of a highlight outweigh the rest of the photo."""
 
     achromatic_specular: bool = False
     """Move each basis's three specular channels together, by one shift, so that the refinement
     cannot tint a dielectric's highlight with the photo's colour processing; a basis the network
     made a metal's (its specular's channels spread over ``METAL_SPREAD``) moves them apart."""
+
+    def __post_init__(self):
+        unknown = [name for name in self.moving_maps if name not in ("diffuse", "roughness", "specular")]
+        if unknown:
+            raise ValueError(f"moving_maps: unknown maps {unknown}; expected some of diffuse, roughness, specular "
+                             "(the normals move with normals)")
 
 
 #: Linear photo values at or above this are clipped (``RefineConfig.skip_clipped``).
@@ -156,9 +170,9 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
     target = downsample(photo[None], resolution)
     predicted = output.global_bases.detach().cpu()
     # Zero where the refinement may not move a channel: the normals unless config.normals.
-    movable = torch.ones(constants.BASIS_CHANNELS)
-    if not config.normals:
-        movable[constants.NORMAL] = 0.0
+    movable = torch.zeros(constants.BASIS_CHANNELS)
+    for name in config.moving_maps + (("normal",) if config.normals else ()):
+        movable[constants.MAP_SLICES[name]] = 1.0
     fit = _fit_drjit if render_backend() == "mitsuba" else _fit_torch
     return fit(weights, deviations, predicted, movable, target, light, fov, convention, extent, config, progress,
                *loss_settings(photo, predicted, config))
@@ -178,6 +192,18 @@ def loss_settings(photo: torch.Tensor, predicted: torch.Tensor, config: RefineCo
     tied = (tied_speculars(predicted[0]) if config.achromatic_specular
             else torch.zeros(predicted.shape[1], dtype=torch.bool))
     return pixel_weights, tied
+
+
+#: Linear values below this are encoded as if they were this (``encoded``): the sRGB curve's
+#: slope, infinite at 0, would make a black pixel's gradient blow up.
+ENCODING_FLOOR = 1e-4
+
+
+def encoded(linear: torch.Tensor) -> torch.Tensor:
+    """sRGB-encoded values of linear ones in [0, 1] (the IEC curve), with ``ENCODING_FLOOR``: what
+    the refinement's ``encoded_loss`` compares (``render.fit`` computes the same)."""
+    linear = linear.clamp(min=ENCODING_FLOOR)
+    return torch.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
 
 
 def tied_speculars(global_bases: torch.Tensor) -> torch.Tensor:
@@ -208,7 +234,8 @@ def _fit_drjit(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
     refined, losses = fit_global_bases(weights[0].numpy(), deviations[0].numpy(), predicted[0].numpy(), movable.numpy(),
                                        target[0].numpy(), light.numpy(), geometry.flash_intensity(fov, convention),
                                        convention, extent, config.steps, config.lr, config.prior, progress=bar,
-                                       pixel_weights=pixel_weights[0].numpy(), tied=tied.numpy())
+                                       pixel_weights=pixel_weights[0].numpy(), tied=tied.numpy(),
+                                       encoded_loss=config.encoded_loss)
     return torch.from_numpy(refined)[None], losses
 
 
@@ -242,6 +269,7 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
             return torch.cat([normals, blend(weights, bases)], dim=1)
 
     optimizer = SmallAdam(global_bases, lr=config.lr)
+    compared = encoded(target) if config.encoded_loss else target
     losses = []
     # The tensors here are small: waking torch's worker threads for every op costs more than it saves.
     threads = torch.get_num_threads()
@@ -251,7 +279,9 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
             current = masked(global_bases)
             maps = to_maps(blended(current))
             rendered = render_flash(maps, lights, fov=fov, convention=convention, extent=extent)[:, 0].clamp(0.0, 1.0)
-            loss = ((rendered - target).abs() * pixel_weights).mean()
+            if config.encoded_loss:
+                rendered = encoded(rendered)
+            loss = ((rendered - compared) * pixel_weights).abs().mean()
             if config.prior:
                 loss = loss + config.prior * (current - predicted).abs().mean()
             global_bases.grad = None

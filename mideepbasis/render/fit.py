@@ -161,8 +161,19 @@ def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int, normals_
     return (normal, mi.Color3f(rest[0], rest[1], rest[2]), rest[3], mi.Color3f(rest[4], rest[5], rest[6])), packed
 
 
+def _encoded(linear):
+    """sRGB encoding of linear values in [0, 1], as ``capturing.refine.encoded`` (with its floor)."""
+    linear = dr.maximum(linear, ENCODING_FLOOR)
+    return dr.select(linear <= 0.0031308, 12.92 * linear, 1.055 * dr.power(linear, 1.0 / 2.4) - 0.055)
+
+
+#: As ``capturing.refine.ENCODING_FLOOR``.
+ENCODING_FLOOR = 1e-4
+
+
 def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step: mi.Float, data: FitInputs,
-          bases: int, size: int, convention: str, extent: float, normals_move: bool = True):
+          bases: int, size: int, convention: str, extent: float, normals_move: bool = True,
+          encoded_loss: bool = False):
     """One refinement step: (the bases after it, Adam's moments, the loss before it). Where
     ``normals_move`` is False the step renders ``data.normal`` and differentiates the other seven
     channels alone (the normals' gradient would be masked out)."""
@@ -172,7 +183,10 @@ def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step:
     current = data.predicted + (free - data.predicted) * data.movable
     maps, packed = _blend(current, data, bases, pixels, normals_move)
     radiance = flash_renderer(convention).render_maps(*maps, data.light, size, size, data.intensity, extent)
-    loss = dr.sum(dr.abs(dr.clip(radiance, 0.0, 1.0) - data.target) * data.pixel_weights, axis=None) / (3 * pixels)
+    shown = dr.clip(radiance, 0.0, 1.0)
+    if encoded_loss:
+        shown = _encoded(shown)
+    loss = dr.sum(dr.abs((shown - data.target) * data.pixel_weights), axis=None) / (3 * pixels)
     dr.backward(loss)
     difference = current - data.predicted
     # d/d current of prior * mean |current - predicted| (torch's |x| has gradient 0 at 0)
@@ -214,7 +228,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      target: np.ndarray, light: np.ndarray, intensity: float, convention: str, extent: float,
                      steps: int, lr: float, prior: float, progress=None,
                      every_channel: bool = False, pixel_weights: np.ndarray | None = None,
-                     tied: np.ndarray | None = None) -> tuple[np.ndarray, list[float]]:
+                     tied: np.ndarray | None = None, encoded_loss: bool = False) -> tuple[np.ndarray, list[float]]:
     """Adam on the global bases so the plugin's render of the blend matches the photo.
 
     Args:
@@ -227,7 +241,8 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
             every_channel: blend and differentiate all ten channels at every step even where the
             normals stay (the quicker path's reference in the tests); pixel_weights: (r, r) each
             pixel's weight in the loss, mean 1 (None: all 1); tied: (N,) whether each basis's three
-            specular channels move together (None: none).
+            specular channels move together (None: none); encoded_loss: compare sRGB-encoded
+            values (the target given linear).
 
     Returns:
         ((N, 10) the refined bases, the loss at every step).
@@ -236,6 +251,9 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     count = bases * constants.BASIS_CHANNELS
     as_float = lambda array: mi.Float(np.ascontiguousarray(array, dtype=np.float32).reshape(-1))  # noqa: E731
     target = np.asarray(target, dtype=np.float32).reshape(3, -1)
+    if encoded_loss:
+        floored = np.maximum(target, ENCODING_FLOOR)
+        target = np.where(floored <= 0.0031308, 12.92 * floored, 1.055 * floored ** (1 / 2.4) - 0.055).astype(np.float32)
     data = FitInputs(weights=[as_float(w) for w in weights], deviations=as_float(deviations),
                      predicted=as_float(predicted), movable=as_float(np.tile(movable, bases)),
                      target=mi.Color3f(*[as_float(channel) for channel in target]),
@@ -257,7 +275,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     for step in (progress or (lambda steps: steps))(range(1, steps + 1)):
         free, first_moment, second_moment, loss = _frozen_step(free, first_moment, second_moment, mi.Float(step),
                                                                 data, bases, size, convention, float(extent),
-                                                                normals_move)
+                                                                normals_move, encoded_loss)
         losses.append(loss)
         if progress and step % PROGRESS_SYNC_STEPS == 0:
             dr.sync_thread()  # the steps run behind the loop: a bar would end before them
