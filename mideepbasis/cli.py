@@ -100,21 +100,49 @@ def _run_render(args) -> None:
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".heic", ".heif", ".exr")
 
 
-def _add_capture(subparsers, describe: bool = True) -> None:
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's help, its lines broken between words only, never inside an option's name."""
+
+    def _split_lines(self, text, width):
+        import textwrap
+
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+    def _fill_text(self, text, width, indent):
+        import textwrap
+
+        return textwrap.fill(" ".join(text.split()), width, initial_indent=indent, subsequent_indent=indent,
+                             break_on_hyphens=False)
+
+
+#: The options each command's brief --help explains (the others are listed by name: --help-all).
+BRIEF_HELP = {
+    "capture": {"fov", "light", "resolution", "network_resolution", "symmetries", "tileable", "crop", "refine.steps",
+                "refine.normals"},
+    "evaluate": {"format", "input_photo", "overwrite", "model", "light", "refine.steps", "refine.normals",
+                 "symmetries", "baselines", "lighting", "limit", "resolution", "environment"},
+    "train": {"data", "steps", "batch", "size", "lr", "local_lr", "vc_weight", "seed", "workers", "validate_every",
+              "device", "init", "train_only", "max_minutes", "bf16", "select_by"},
+}
+
+
+def _add_capture(subparsers, describe: bool = True, brief: bool = False) -> None:
     from .capturing import CaptureConfig
     from .configs import add_config_arguments
 
     parser = subparsers.add_parser(
-        "capture", help=COMMAND_HELP["capture"],
+        "capture", help=COMMAND_HELP["capture"], usage="mideepbasis capture PHOTO [PHOTO ...] -o OUT [options]",
+        formatter_class=_HelpFormatter,
         description="Photo to material: lighting search, DeepBasis prediction, refinement of the global bases. "
                     "One photo writes the material folder into OUT; several (or a folder) write OUT/<photo name>/ each.")
     parser.add_argument("photos", type=Path, nargs="+", metavar="PHOTO", help="JPEG, PNG or EXR flash photos, or folders of them")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
     # Every CaptureConfig field is an option (--refine-steps, --search-grid, ...), documented by the field.
-    add_config_arguments(parser, CaptureConfig, describe=describe)
+    add_config_arguments(parser, CaptureConfig, describe=describe, shown=BRIEF_HELP["capture"] if brief else None)
     parser.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--exr", action="store_true", help="also write the maps as linear EXR")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing, non-empty OUT")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing OUT that the tool wrote (its manifest lists all it holds)")
     parser.add_argument("--preview-tiles", type=float, default=2.0,
                         help="times the maps repeat across the sphere and cloth previews")
     parser.add_argument("--viewer-screenshot", action="store_true",
@@ -302,12 +330,13 @@ def _run_data_scenes(args) -> None:
     print(f"wrote {args.n} calibrated scenes into {args.output}")
 
 
-def _add_evaluate(subparsers, describe: bool = True) -> None:
+def _add_evaluate(subparsers, describe: bool = True, brief: bool = False) -> None:
     from .configs import add_config_arguments
     from .evaluation import EvaluationConfig
 
     parser = subparsers.add_parser(
-        "evaluate", help=COMMAND_HELP["evaluate"],
+        "evaluate", help=COMMAND_HELP["evaluate"], usage="mideepbasis evaluate --data FOLDER -o OUT [options]",
+        formatter_class=_HelpFormatter,
         description="Synthetic data (the paper's protocol): inputs re-rendered from the ground-truth maps under a "
                     "seeded hand-held flash per material; map RMSE in the stored encoding; re-rendering RMSE, FLIP, "
                     "SSIM (and LPIPS when its weights are on this machine) under 30 seeded random lights and views. "
@@ -317,7 +346,7 @@ def _add_evaluate(subparsers, describe: bool = True) -> None:
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT")
     # Every other EvaluationConfig field is an option (--refine-steps, --symmetries, ...), documented by the field.
     add_config_arguments(parser, EvaluationConfig, skip={"data", "out"}, defaults=EvaluationConfig(data=""),
-                         describe=describe)
+                         describe=describe, shown=BRIEF_HELP["evaluate"] if brief else None)
     parser.set_defaults(run=_run_evaluate)
 
 
@@ -359,12 +388,14 @@ def _run_import_weights(args) -> None:
     print(f"wrote {path}: use it with --model in capture and evaluate")
 
 
-def _add_train(subparsers, describe: bool = True) -> None:
+def _add_train(subparsers, describe: bool = True, brief: bool = False) -> None:
     from .configs import add_config_arguments
     from .model.network import PRESETS
     from .train import TrainConfig
 
     parser = subparsers.add_parser("train", help=COMMAND_HELP["train"],
+                                   usage="mideepbasis train --out runs/NAME [--resume] [options]",
+                                   formatter_class=_HelpFormatter,
                                    description="Train DeepBasisNet (L_sup + 0.05 L_vc). Launch under torchrun for "
                                                "several processes; --resume continues a killed run exactly, with "
                                                "its stored settings (options given must agree with them).")
@@ -374,7 +405,7 @@ def _add_train(subparsers, describe: bool = True) -> None:
                         help="network preset the --network-* settings start from (default: compact)")
     # Every other TrainConfig field is an option (--steps, --network-num-bases, --synthesis-read-noise, ...).
     add_config_arguments(parser, TrainConfig, skip={"out", "preset", "synthesis.convention", "procedural.size"},
-                         describe=describe)
+                         describe=describe, shown=BRIEF_HELP["train"] if brief else None)
     parser.set_defaults(run=_run_train)
 
 
@@ -413,11 +444,12 @@ def _run_train(args) -> None:
              f"; the weights so far are in {checkpoint} (no validation ran: --validate-every 0)"))
 
 
-def build_parser(command: str | None = None, describe: bool = True) -> argparse.ArgumentParser:
+def build_parser(command: str | None = None, describe: bool = True, brief: bool = False) -> argparse.ArgumentParser:
     """The command line's parser. Given the ``command`` about to run, the other sub-commands get
     only their name and help line: building them imports what they need (train's parser alone
     took 0.2 s of a capture's start). ``describe`` False leaves out the help of the options made
-    from config fields (``add_config_arguments``), for a command line that prints no help."""
+    from config fields (``add_config_arguments``), for a command line that prints no help;
+    ``brief`` explains only the ``BRIEF_HELP`` options (``--help``; ``--help-all`` explains all)."""
     parser = argparse.ArgumentParser(prog="mideepbasis", description="SVBRDF capture from one hand-held flash photo.")
     subparsers = parser.add_subparsers(dest="command", required=True)
     adders = {"render": _add_render, "capture": _add_capture, "demo": _add_demo, "data": _add_data,
@@ -426,7 +458,7 @@ def build_parser(command: str | None = None, describe: bool = True) -> argparse.
         if command in adders and name != command:
             subparsers.add_parser(name, help=COMMAND_HELP[name])
         elif name in _DESCRIBED_COMMANDS:
-            add(subparsers, describe)
+            add(subparsers, describe, brief)
         else:
             add(subparsers)
     return parser
@@ -438,8 +470,10 @@ _DESCRIBED_COMMANDS = ("capture", "evaluate", "train")
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    every_option = "--help-all" in argv
+    argv = ["--help" if argument == "--help-all" else argument for argument in argv]
     wants_help = any(argument in ("-h", "--help") for argument in argv)
-    args = build_parser(argv[0] if argv else None, describe=wants_help).parse_args(argv)
+    args = build_parser(argv[0] if argv else None, describe=wants_help, brief=not every_option).parse_args(argv)
     warnings.formatwarning = lambda message, category, *rest: f"mideepbasis: warning: {message}\n"
     try:
         status = args.run(args)

@@ -151,25 +151,40 @@ def _destination(path: tuple[str, ...]) -> str:
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type, skip: set[str] | frozenset[str] = frozenset(),
-                         defaults=None, _path: tuple[str, ...] = (), describe: bool = True) -> None:
+                         defaults=None, _path: tuple[str, ...] = (), describe: bool = True,
+                         shown: set[str] | frozenset[str] | None = None, _hidden: dict | None = None) -> None:
     """One option per field of the dataclass ``cls`` (nested dataclasses recursively, their options
     prefixed with the field's name). ``skip`` names fields (dotted for nested ones: ``refine.lr``)
     the command sets otherwise; ``defaults`` (an instance) is shown in the help (default: the class's).
     ``describe``: the help of each option is its field's docstring, which is read from the source
-    (60 - 100 ms a command); False where no help will be printed leaves it out."""
+    (60 - 100 ms a command); False where no help will be printed leaves it out.
+
+    ``shown``: the fields (dotted) whose help a brief ``--help`` prints, each in its docstring's
+    first sentence; the others are advanced: their options work as ever but appear only by name,
+    listed under a heading per group (``advanced_groups``), and in full with ``--help-all``.
+    None: every option in full."""
     defaults = defaults if defaults is not None else cls()
     hints, docs = typing.get_type_hints(cls), (field_docs(cls) if describe else {})
+    top = _hidden is None
+    hidden: dict[str, list[str]] = {} if top else _hidden
     for item in dataclasses.fields(cls):
         path = _path + (item.name,)
-        if ".".join(path) in skip:
+        dotted = ".".join(path)
+        if dotted in skip:
             continue
         annotation = hints[item.name]
         default = getattr(defaults, item.name)
         if _nested(annotation):
-            add_config_arguments(parser, _nested(annotation), skip, default, path, describe)
+            add_config_arguments(parser, _nested(annotation), skip, default, path, describe, shown, hidden)
             continue
         option = _option(path)
-        help_text = f"{docs.get(item.name, '')} (default: {_show(default)})".replace("%", "%%")
+        documentation = docs.get(item.name, "")
+        if shown is not None:
+            documentation = first_sentence(documentation)
+        help_text = f"{documentation} (default: {_show(default)})".replace("%", "%%")
+        if shown is not None and dotted not in shown:
+            hidden.setdefault(path[0] if len(path) > 1 else "", []).append(option)
+            help_text = argparse.SUPPRESS
         if _parts(annotation)[0] is bool:
             parser.add_argument(option, dest=_destination(path), action=argparse.BooleanOptionalAction,
                                 default=argparse.SUPPRESS, help=help_text)
@@ -181,6 +196,21 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, skip: set[s
             extra["action"] = _JoinRepeated
         parser.add_argument(option, dest=_destination(path), type=parse, default=argparse.SUPPRESS,
                             metavar=metavar, help=help_text, **extra)
+    if top and hidden and describe:
+        for group, options in hidden.items():
+            title = f"advanced{' ' + group if group else ''} options (mideepbasis {parser.prog.split()[-1]} --help-all " \
+                    "explains each)"
+            parser.add_argument_group(title, "  ".join(options))
+
+
+def first_sentence(text: str) -> str:
+    """A docstring's first sentence (up to its first full stop followed by a space, an "e.g." or
+    "i.e." not counting), markup removed."""
+    import re
+
+    text = text.replace("``", "")
+    end = re.search(r"(?<!e\.g)(?<!i\.e)\.\s", text)
+    return text if end is None else text[:end.start() + 1]
 
 
 def _checked(parse):

@@ -198,7 +198,7 @@ def test_a_parser_built_for_its_command_parses_as_the_whole_one(argv):
 
 def test_the_options_help_is_their_fields_docstrings_when_help_is_asked_for(capsys):
     with pytest.raises(SystemExit):
-        cli.main(["capture", "--help"])
+        cli.main(["capture", "--help-all"])
     # SearchConfig.relaxation's docstring, folded by argparse.
     assert "How far a pass moves the light toward the best" in " ".join(capsys.readouterr().out.split())
 
@@ -249,3 +249,33 @@ def test_an_import_error_is_one_clean_sentence(tmp_path, capsys):
     assert err.startswith("mideepbasis: error:") and all(c.isprintable() for c in err)
     assert "Unsupported global" in err and err.endswith(".)") and len(err) < 300, err
     assert not (tmp_path / "m.safetensors").exists()
+
+
+@pytest.mark.parametrize("command,most", [("capture", 80), ("train", 150), ("evaluate", 80)])
+def test_help_fits_a_screen_and_help_all_explains_every_option(command, most, capsys):
+    with pytest.raises(SystemExit):
+        cli.main([command, "--help"])
+    brief = capsys.readouterr().out
+    assert len(brief.splitlines()) <= most
+    with pytest.raises(SystemExit):
+        cli.main([command, "--help-all"])
+    full = capsys.readouterr().out
+    assert len(full.splitlines()) > len(brief.splitlines())
+    listed, advanced = False, []
+    for line in brief.splitlines():
+        if line.startswith("advanced"):
+            listed = True
+        elif listed:
+            advanced += [word for word in line.split() if word.startswith("--")]
+    assert advanced and all(f"  {option} " in full or f"  {option}," in full or f"  {option}\n" in full
+                            for option in advanced)
+    assert "session" not in (brief + full).lower()
+
+
+def test_an_advanced_option_parses_though_the_brief_help_only_names_it():
+    args = cli.build_parser("capture", describe=False).parse_args(["capture", "p.jpg", "-o", "o", "--search-grid",
+                                                                    "9"])
+    from mideepbasis.capturing import CaptureConfig
+    from mideepbasis.configs import config_from_arguments
+
+    assert config_from_arguments(CaptureConfig, args).search.grid == 9
