@@ -29,14 +29,6 @@ from .errors import InputError, MideepbasisError
 from .startup import freeze_startup_objects
 
 
-def _offset(text: str) -> tuple[float, float]:
-    try:
-        tx, ty = (float(part) for part in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"offset must be TX,TY in patch half-widths, got {text!r}") from None
-    return tx, ty
-
-
 def _positive_int(text: str) -> int:
     value = int(text)
     if value <= 0:
@@ -56,42 +48,33 @@ COMMAND_HELP = {
 }
 
 
-def _add_render(subparsers) -> None:
+def _add_render(subparsers, describe: bool = True, brief: bool = False) -> None:
+    from .configs import add_config_arguments
+    from .render.api import RenderConfig
+
     parser = subparsers.add_parser(
-        "render", help=COMMAND_HELP["render"],
+        "render", help=COMMAND_HELP["render"], usage="mideepbasis render MATERIAL_DIR -o OUT.exr [options]",
+        formatter_class=_HelpFormatter,
         description="Render a material folder (docs/ARCHITECTURE.md section 6). "
                     "Writes the linear EXR and an sRGB PNG beside it. "
                     "With --light flash and no --spp, renders the per-pixel flash formula exactly; "
                     "with --spp, path traces the flash scene.")
     parser.add_argument("material", type=Path, metavar="MATERIAL_DIR", help="material folder (normal, diffuse, roughness, specular)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.exr", help="output EXR; the PNG goes beside it")
-    parser.add_argument("--light", choices=["flash", "env"], default="flash", help="flash capture or environment preview")
-    parser.add_argument("--fov", type=float, default=constants.DEFAULT_FOV_DEG, help="flash camera field of view [deg]")
-    parser.add_argument("--offset", type=_offset, default=(0.0, 0.0), metavar="TX,TY",
-                        help="hand-held offset of camera and flash [patch half-widths]")
-    parser.add_argument("--spp", type=_positive_int, default=None, help="samples per pixel (path tracing)")
-    parser.add_argument("--convention", choices=constants.CONVENTIONS, default=None,
-                        help="shading convention (default: the material's own)")
-    parser.add_argument("--env", default="studio", metavar="studio|sunsky|FILE", help="environment of --light env")
-    parser.add_argument("--resolution", type=_positive_int, default=None,
-                        help="image size [pixels] (default: the material's for flash, 256 for env)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the path tracer")
-    parser.add_argument("--shape", choices=constants.PREVIEW_SHAPES, default="plane",
-                        help="object of --light env: the sample on a table, a ball, or a cloth draped over one")
-    parser.add_argument("--tiles", type=float, default=2.0, help="times the maps repeat across a sphere or cloth")
+    # Every RenderConfig field is an option (--light, --spp, --env, ...), documented by the field.
+    add_config_arguments(parser, RenderConfig, describe=describe)
     parser.set_defaults(run=_run_render)
 
 
 def _run_render(args) -> None:
+    from .configs import config_from_arguments
     from .material import Material
-    from .render.api import render_material, write_render
+    from .render.api import RenderConfig, render_with, write_render
 
     if args.output.suffix.lower() != ".exr":
         raise InputError(f"output {args.output} must end in .exr (the sRGB PNG is written beside it)")
     material = Material.load(args.material)
-    image = render_material(material, light=args.light, fov=args.fov, offset=args.offset, spp=args.spp,
-                            convention=args.convention, environment=args.env, resolution=args.resolution,
-                            seed=args.seed, shape=args.shape, tiles=args.tiles)
+    image = render_with(material, config_from_arguments(RenderConfig, args))
     exr, png = write_render(image, args.output)
     print(f"wrote {exr} and {png}")
 
@@ -465,7 +448,7 @@ def build_parser(command: str | None = None, describe: bool = True, brief: bool 
 
 
 #: The sub-commands whose options are made from config fields (their help read from the source).
-_DESCRIBED_COMMANDS = ("capture", "evaluate", "train")
+_DESCRIBED_COMMANDS = ("capture", "evaluate", "render", "train")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -178,7 +178,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, skip: set[s
             add_config_arguments(parser, _nested(annotation), skip, default, path, describe, shown, hidden)
             continue
         option = _option(path)
-        documentation = docs.get(item.name, "")
+        documentation = docs.get(item.name, "").replace("``", "")
         if shown is not None:
             documentation = first_sentence(documentation)
         help_text = f"{documentation} (default: {_show(default)})".replace("%", "%%")

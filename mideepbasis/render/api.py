@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
@@ -9,6 +10,7 @@ import numpy as np
 import torch
 
 from .. import constants, geometry
+from ..configs import positive_int
 from ..errors import InputError
 
 #: The example material shipped with the package (a glazed tile), used by ``mideepbasis demo``.
@@ -33,6 +35,48 @@ def _resized(maps: torch.Tensor, resolution: int | None) -> torch.Tensor:
                                               align_corners=False, antialias=True)[0]
     resized[:3] = geometry.unit_vectors(resized[:3], dim=0)
     return resized
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """How ``mideepbasis render`` draws a material folder (``render_material``'s settings)."""
+
+    light: str = field(default="flash", metadata={"choices": ("flash", "env")})
+    """``flash``: the capture's flash; ``env``: the preview under an environment."""
+
+    fov: float = constants.DEFAULT_FOV_DEG
+    """Field of view of the flash camera [deg]."""
+
+    offset: tuple[float, float] = field(default=(0.0, 0.0), metadata={"metavar": "TX,TY"})
+    """Hand-held offset of camera and flash [patch half-widths]."""
+
+    spp: int | None = field(default=None, metadata={"parse": positive_int})
+    """Samples per pixel (path tracing); None: the flash's per-pixel formula, or the preview's default."""
+
+    convention: str | None = field(default=None, metadata={"choices": constants.CONVENTIONS})
+    """Shading convention (None: the material's own)."""
+
+    env: str = field(default="studio", metadata={"metavar": "studio|sunsky|FILE"})
+    """Environment of ``light`` env: ``studio``, ``sunsky`` or an EXR/HDR file."""
+
+    resolution: int | None = field(default=None, metadata={"parse": positive_int})
+    """Image size [pixels] (None: the material's for the flash, 256 for the environment)."""
+
+    seed: int = 0
+    """Seed of the path tracer."""
+
+    shape: str = field(default="plane", metadata={"choices": constants.PREVIEW_SHAPES})
+    """Object of ``light`` env: the sample on a table, a ball, or a cloth draped over one."""
+
+    tiles: float = 2.0
+    """Times the maps repeat across a sphere or cloth."""
+
+
+def render_with(material, config: RenderConfig, progress: bool = True) -> np.ndarray:
+    """``render_material`` with a ``RenderConfig``."""
+    return render_material(material, light=config.light, fov=config.fov, offset=config.offset, spp=config.spp,
+                           convention=config.convention, environment=config.env, resolution=config.resolution,
+                           seed=config.seed, progress=progress, shape=config.shape, tiles=config.tiles)
 
 
 def render_material(material, light: str = "flash", fov: float = constants.DEFAULT_FOV_DEG,
