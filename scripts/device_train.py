@@ -85,10 +85,10 @@ def wait_all(processes: dict, log, every: float = 0.0, copy=None) -> None:
 
 
 def rate(run: Path) -> float:
-    """Steps per second of a run, start-up excluded (the last ``session_steps_per_second`` record of
+    """Steps per second of a run, start-up excluded (the last ``process_steps_per_second`` record of
     its train.jsonl: the training process's steps since its first one)."""
     records = [json.loads(line) for line in (run / "train.jsonl").read_text().splitlines()]
-    return [r["session_steps_per_second"] for r in records if "session_steps_per_second" in r][-1]
+    return [r["process_steps_per_second"] for r in records if "process_steps_per_second" in r][-1]
 
 
 def main() -> None:

@@ -23,7 +23,7 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip_slow)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def shared_data() -> Path:
     """../shared/data, or a skip with a message where it is absent."""
     if not SHARED_DATA.is_dir():
@@ -31,7 +31,7 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def evaluation_dataset(tmp_path_factory):
     """A folder of three readable 32 px materials and one corrupt one (a map of the wrong size),
     and an untrained tiny checkpoint: (folder, checkpoint path)."""
@@ -56,3 +56,15 @@ def evaluation_dataset(tmp_path_factory):
     torch.manual_seed(0)
     model = save_checkpoint(folder.parent / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())
     return folder, model
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    """An untrained checkpoint of the tiny preset: quick captures whose maps are nonsense."""
+    import torch
+
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    return save_checkpoint(tmp_path_factory.mktemp("model") / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())

@@ -269,7 +269,6 @@ def test_help_fits_a_screen_and_help_all_explains_every_option(command, most, ca
             advanced += [word for word in line.split() if word.startswith("--")]
     assert advanced and all(f"  {option} " in full or f"  {option}," in full or f"  {option}\n" in full
                             for option in advanced)
-    assert "session" not in (brief + full).lower()
 
 
 def test_an_advanced_option_parses_though_the_brief_help_only_names_it():

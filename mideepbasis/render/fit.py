@@ -8,7 +8,7 @@ one ``dr.freeze`` function: traced at its first call, then replayed as a few ker
 
 The same arithmetic as the torch loop (``compose_bases``, ``to_maps``, clipping, mean L1, the
 prior, ``SmallAdam``), so the same result to float rounding
-(``tests/test_capture.py::test_the_frozen_drjit_refinement_loop_is_the_torch_loop``). Two
+(``tests/capturing/test_refine.py::test_the_frozen_drjit_refinement_loop_is_the_torch_loop``). Two
 choices keep a step to a few kernels:
 
 - the maps change at every step, and a texture update cannot be recorded: the plugin is evaluated

@@ -72,8 +72,7 @@ class GeneratorConfig:
     1/16 of the sample (power-law noise of 1 - 8 cycles), independent of the colours. The
     families' relief, scaled to a mean tilt, is mostly fine: features under 1/16 of the sample
     carry the normal's x and y at 0.036 RMS in the coarse band of 48 materials, against 0.089 in
-    the shared test set; (1.5, 30) with chance 0.7 gives 0.067 (benchmarks/normal_bands.py
-    --procedural 48 [--coarse-relief-tilt-deg 1.5 30])."""
+    the shared test set; (1.5, 30) with chance 0.7 gives 0.067."""
 
     coarse_relief_probability: float = 0.7
     """Chance of the broad undulation of ``coarse_relief_tilt_deg``."""

@@ -4,7 +4,7 @@ The references are computed here with plain math, NumPy or torch: closed forms (
 checkerboard images for SSIM, constant images for FLIP's colour pipeline, offsets at known angles
 for the light error), a direct per-window SSIM, the shading formulas of
 ``mideepbasis/render/shading.py``'s docstring evaluated by hand per pixel, and a functional LPIPS.
-None of them calls the function it checks. ``tests/test_evaluate.py`` holds the older hand-computed
+None of them calls the function it checks. ``tests/evaluation/test_run.py`` holds the older hand-computed
 cases (identical inputs, a diffuse and a tilted-normal map RMSE, SSIM of two constants, a 10 degree
 light error, the trivial baseline's diffuse mean, LPIPS plumbing).
 """

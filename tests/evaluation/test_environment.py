@@ -13,7 +13,7 @@ from mideepbasis.evaluation.environment import (EnvironmentProtocol, Environment
                                                 parse_environments, spearman, to_display)
 from mideepbasis.errors import InputError
 
-from .helpers import directional_albedo
+from ..helpers import directional_albedo
 from mideepbasis.evaluation import EvaluationConfig, run_evaluation
 
 #: Tolerances of the Monte Carlo checks.

@@ -1,0 +1,172 @@
+"""The capture engine end to end: its outputs, its failures, its imports, the public function."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from PIL import Image
+
+from mideepbasis.capturing import RefineConfig, SearchConfig, capture
+from mideepbasis.evaluation import flash_photos
+from mideepbasis.export import save_capture
+from mideepbasis.imageio import write_image
+from mideepbasis.material import Material
+from mideepbasis.render import render_flash
+
+from .helpers import material
+
+
+def test_capture_outputs_load_back_render_and_validate(tmp_path, tiny_checkpoint):
+    truth = material(4, size=64)
+    photos, _ = flash_photos(truth, torch.tensor([[0.1, -0.1]]))
+    write_image(tmp_path / "shot.png", photos[0].permute(1, 2, 0).numpy(), encode_srgb=True)
+    # One pass: the untrained tiny model's bases disagree from copy to copy, and their averaged
+    # normals change from pixel to pixel more than the footprint comparison below allows.
+    result = capture(tmp_path / "shot.png", model=tiny_checkpoint, resolution=64, refine=RefineConfig(steps=20),
+                     search=SearchConfig(resolution=32, grid=9), symmetries=1)
+    out = save_capture(result, tmp_path / "out", exr=True, environment_spp=4)
+
+    loaded = Material.load(out)
+    assert torch.allclose(loaded.to_tensor(), result.material.to_tensor(), atol=1.5 / 255)
+    exr = {name: out / f"{name}.exr" for name in ("normal", "diffuse", "roughness", "specular")}
+    assert all(p.is_file() for p in exr.values())
+    light = json.loads((out / "light.json").read_text())
+    assert light["offset"] == pytest.approx(list(result.offset)) and light["fov_source"] == "default"
+    for name in ("photo.png", "rerender.png", "error.png", "environment.png", "report.png", "report.html"):
+        assert (out / name).is_file(), name
+
+    import mitsuba as mi
+
+    scene = mi.load_file(str(out / "scene.xml"), spp="64")
+    traced = np.array(mi.render(scene, spp=64))[..., :3]
+    with torch.no_grad():
+        expected = render_flash(loaded.to_tensor()[None], result.light_position.view(1, 1, 3))[0, 0].permute(1, 2, 0).numpy()
+    # The tiny untrained model's maps change from pixel to pixel, and the path tracer averages over
+    # each pixel's footprint with bilinear textures: compare 8 x 8 blocks.
+    def blocks(image):
+        return image.reshape(8, 8, 8, 8, 3).mean(axis=(1, 3))
+
+    assert np.abs(blocks(traced) - blocks(expected)).mean() / expected.mean() < 0.03
+
+    import pygltflib
+
+    gltf = pygltflib.GLTF2().load(str(out / "material.gltf"))
+    assert gltf.asset.version == "2.0" and len(gltf.materials) == 1
+    assert "KHR_materials_specular" in gltf.materials[0].extensions
+    for image in gltf.images:
+        assert (out / image.uri).is_file(), image.uri
+    assert len(gltf.binary_blob() or gltf.decode_data_uri(gltf.buffers[0].uri)) == gltf.buffers[0].byteLength
+
+
+def test_a_preview_that_fails_to_trace_fails_the_writing_and_leaves_nothing(tmp_path, tiny_checkpoint, monkeypatch):
+    """The tracer thread hands the previews over one by one: a failure in the second one (the
+    first already written beside the exports) ends the writing with that error, without waiting
+    for a preview that never comes, and no output folder nor staging folder is left."""
+    import mideepbasis.render.scenes as scenes
+
+    truth = material(4, size=64)
+    photos, _ = flash_photos(truth, torch.tensor([[0.1, -0.1]]))
+    write_image(tmp_path / "shot.png", photos[0].permute(1, 2, 0).numpy(), encode_srgb=True)
+    result = capture(tmp_path / "shot.png", model=tiny_checkpoint, resolution=64, refine=RefineConfig(steps=0),
+                     light=(0.1, -0.1), symmetries=1)
+    traced = []
+    real_render = scenes.render
+
+    def render(scene, *args, **kwargs):
+        if traced:
+            raise RuntimeError("the sphere's trace failed")
+        traced.append(scene)
+        return real_render(scene, *args, **kwargs)
+
+    monkeypatch.setattr(scenes, "render", render)
+    with pytest.raises(RuntimeError, match="the sphere's trace failed"):
+        save_capture(result, tmp_path / "out", environment_spp=4)
+    assert len(traced) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["shot.png"]
+
+
+def test_a_capture_imports_neither_dynamo_nor_plotting_libraries(tmp_path):
+    # torch._dynamo (pulled in by torch.optim), matplotlib and colour-science cost seconds of start-up;
+    # pxr, loaded beside the preview thread, deadlocked about one capture in ten (the USD file is text).
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from mideepbasis.capturing import capture, CaptureConfig, RefineConfig\n"
+              "from mideepbasis.export import save_capture\n"
+              "from mideepbasis.render.api import example_capture_dir\n"
+              "result = capture(example_capture_dir() / 'photo.jpg', config=CaptureConfig(refine=RefineConfig(steps=2)))\n"
+              f"save_capture(result, {str(tmp_path / 'out')!r})\n"
+              "print(sorted(m for m in ('torch._dynamo', 'matplotlib', 'colour', 'sympy', 'pxr') if m in sys.modules))\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_importing_the_package_sets_a_short_openmp_spin_unless_the_user_chose():
+    # Set before torch loads OpenMP (which reads it once): a short spin, not passive waiting.
+    import os
+    import subprocess
+    import sys
+
+    script = "import mideepbasis, os; print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))"
+    clean = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+
+    def printed(**extra):
+        result = subprocess.run([sys.executable, "-c", script], env={**clean, **extra}, capture_output=True,
+                                text=True, timeout=120)
+        return result.stdout.split()
+
+    assert printed() == ["1000", "None"]
+    assert printed(OMP_WAIT_POLICY="PASSIVE") == ["None", "PASSIVE"]
+    assert printed(GOMP_SPINCOUNT="5") == ["5", "None"]
+
+
+def test_the_public_capture_is_a_plain_function(tmp_path):
+    # docs/ARCHITECTURE.md section 10: `from mideepbasis import capture; capture("photo.jpg")`, in a fresh
+    # process; a function, whatever was imported before or after it.
+    import subprocess
+    import sys
+
+    script = ("import inspect\n"
+              "from mideepbasis import capture\n"
+              "from mideepbasis.capturing import RefineConfig, capture as function\n"
+              "from mideepbasis.render.api import example_capture_dir\n"
+              "import mideepbasis\n"
+              "assert inspect.isfunction(capture) and capture is function is mideepbasis.capture\n"
+              "result = capture(example_capture_dir() / 'photo.jpg', refine=RefineConfig(steps=0))\n"
+              "print(type(result).__name__, result.material.width, capture.__name__)\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split() == ["CaptureResult", "256", "capture"]
+
+
+def test_the_report_of_a_large_capture_shows_its_images_averaged_to_the_panel(tmp_path):
+    from mideepbasis.capturing import CaptureResult
+    from mideepbasis.reporting import REPORT_TILE, REPORT_TITLE, capture_report
+
+    size = 4 * REPORT_TILE  # beyond the panels' limit of twice their size: averaged first
+    rows = torch.linspace(0, 1, size).view(1, size, 1)
+    photo = torch.cat([rows.expand(1, size, size), (1 - rows).expand(1, size, size),
+                       (torch.arange(size) % 2).float().view(1, 1, size).expand(1, size, size)])  # stripes of 1 px
+    maps = F.interpolate(material(5, size=64), size=(size, size), mode="nearest")[0]
+    result = CaptureResult(material=Material.from_tensor(maps), photo=photo, offset=(0.0, 0.0), fov=45.0,
+                           fov_source="argument", searched=False)
+    folder = tmp_path / "report"
+    folder.mkdir()
+    for name in ("normal", "diffuse", "roughness", "specular"):
+        write_image(folder / f"{name}.png", np.zeros((8, 8, 3), np.float32))  # the viewer embeds the maps
+    capture_report(result, folder, rerender=photo, error=photo * 0, environment=np.zeros((32, 32, 3), np.float32),
+                   rerender_rmse=0.0)
+    sheet = np.asarray(Image.open(folder / "report.png")).astype(np.float64) / 255
+    panel = sheet[REPORT_TITLE + 4:REPORT_TITLE + REPORT_TILE - 4, 4:REPORT_TILE - 4]
+    # The 1-px stripes average to linear 0.5 (sRGB 0.735), not to a blend of their sRGB values (0.5).
+    blue = panel[8:-8, 8:-8, 2]
+    assert abs(blue.mean() - 0.735) < 0.01 and blue.std() < 0.01
+    # The ramps: linear red at the panel's middle row is about 0.5.
+    middle = panel[panel.shape[0] // 2, 8:-8]
+    assert abs(middle[:, 0].mean() - 0.735) < 0.03 and abs(middle[:, 1].mean() - 0.735) < 0.03
