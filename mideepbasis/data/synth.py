@@ -95,6 +95,11 @@ class SynthesisConfig:
     plane): the photo is rendered with every normal tilted by one rotation, uniform up to this
     angle about a random axis in the plane; the target keeps the material's normals."""
 
+    plain_probability: float = 0.0
+    """Chance that a batch is photographed by the plain camera all the same (one ``fov``, plain sRGB,
+    none of the phone levers): the network keeps what it does on rendered photos such as the
+    shared test set's, while it learns the phones'. 0: the levers as set, for every batch."""
+
     supersample: int = 1
     """Photograph each material at this many times the size its maps come out at, then
     area-downsample the photo and the maps (the normals averaged and made unit), as ``capture``
@@ -119,6 +124,14 @@ class SynthesisConfig:
             raise ValueError(f"jpeg_quality must be a range within [1, 100], got {self.jpeg_quality}")
         if not 0.0 <= self.tilt_deg < 90.0:
             raise ValueError(f"tilt_deg must lie in [0, 90), got {self.tilt_deg}")
+        if not 0.0 <= self.plain_probability <= 1.0:
+            raise ValueError(f"plain_probability must lie in [0, 1], got {self.plain_probability}")
+
+    def plain(self) -> SynthesisConfig:
+        """This config with every phone lever off (the plain camera)."""
+        defaults = SynthesisConfig()
+        return dataclasses.replace(self, plain_probability=0.0,
+                                   **{name: getattr(defaults, name) for name in PHONE_LEVERS})
 
 
 #: The fields of ``SynthesisConfig`` that make photos as phones take them, each a lever of its own
@@ -406,6 +419,8 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
     batch, factor = maps.shape[0], config.supersample
     if maps.shape[-2] % factor or maps.shape[-1] % factor:
         raise ValueError(f"maps of {maps.shape[-2]}x{maps.shape[-1]} cannot be supersampled by {factor}")
+    if config.plain_probability > 0 and torch.rand((), generator=generator).item() < config.plain_probability:
+        config = config.plain()
     fov = sample_fov(generator, config)
     variation = sample_variation(batch, generator, config.max_rotation, config.max_shift)
     offsets = sample_offsets(batch, generator, fov, config.max_offset_deg, config.offset_sigma_divisor)

@@ -287,3 +287,13 @@ def test_phone_photos_make_valid_inputs_and_keep_the_pair_consistent():
     assert 20.0 <= batch.fov <= 75.0
     # M + xi is the variation of the target (the diffuse with its cast), as the consistency loss needs.
     torch.testing.assert_close(batch.varied_maps, batch.variation.apply(batch.maps))
+
+
+def test_a_share_of_batches_is_photographed_by_the_plain_camera():
+    config = synth.SynthesisConfig(**synth.PHONE_PHOTOS, plain_probability=0.4)
+    assert config.plain().fov_range is None and config.plain().jpeg_quality is None
+    assert config.plain().white_balance_sigma == config.white_balance_sigma  # the levers alone
+    generator = torch.Generator().manual_seed(3)
+    fovs = [synth.synthesize(random_maps(1, 8), generator, config).fov for _ in range(200)]
+    plain = sum(fov == constants.DEFAULT_FOV_DEG for fov in fovs) / len(fovs)
+    assert 0.3 < plain < 0.5
