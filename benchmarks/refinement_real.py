@@ -29,6 +29,7 @@ VARIANTS = {
     "achromatic": {"achromatic_specular": True},
     "prior0.05": {"prior": 0.05},
     "prior0.2": {"prior": 0.2},
+    "prior0.5": {"prior": 0.5},
     "steps40": {"steps": 40},
     "combined": {"skip_clipped": True, "achromatic_specular": True, "prior": 0.05},
     "encoded": {"encoded_loss": True},
