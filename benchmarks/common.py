@@ -124,6 +124,7 @@ def shared_predictions(model):
     [patch half-widths] and ``model``'s maps (N, 10, H, W) predicted as ``evaluate``'s default
     protocol makes them (light known, no refinement, the network at its training resolution)."""
     from mideepbasis import constants
+    from mideepbasis.capturing import RefineConfig
     from mideepbasis.evaluation.protocol import evaluation_offsets, load_evaluation_materials
     from mideepbasis.evaluation.run import _predict_all
 
@@ -132,5 +133,5 @@ def shared_predictions(model):
     fov = constants.DEFAULT_FOV_DEG
     truth = load_evaluation_materials(SHARED_TEST, "deschaintre5").maps
     offsets = evaluation_offsets(len(truth), 0, fov)
-    predicted, _, _ = _predict_all(model, truth, offsets, fov, "known", 0, True, "model")
+    predicted, _, _ = _predict_all(model, truth, offsets, fov, "known", RefineConfig(steps=0), True, "model")
     return truth, offsets, predicted

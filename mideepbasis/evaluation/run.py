@@ -254,9 +254,9 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
         rows["trivial"] = {"seconds": 0.0}
         if direct is not None:
             start = time.perf_counter()
-            predictions["direct (no bases)"], _, _ = _predict_all(direct, truth, offsets, config.fov, "known", 0, progress,
-                                                                  "direct", network_resolution=config.network_resolution,
-                                                                  symmetries=config.symmetries)
+            predictions["direct (no bases)"], _, _ = _predict_all(
+                direct, truth, offsets, config.fov, "known", RefineConfig(steps=0), progress, "direct",
+                network_resolution=config.network_resolution, symmetries=config.symmetries)
             rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
             per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention,
                                                       lpips, stored=stored)

@@ -183,3 +183,17 @@ def test_evaluation_averages_over_the_symmetries_capture_does_unless_told(evalua
     assert summaries[1]["symmetries"] == 1
     # The averaged prediction is another prediction: its errors differ from the single pass's.
     assert summaries[None]["maps_rmse"] != summaries[1]["maps_rmse"]
+
+
+def test_the_direct_baseline_row_runs_a_network_without_bases(evaluation_dataset, tmp_path):
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    folder, model = evaluation_dataset
+    torch.manual_seed(0)
+    direct = save_checkpoint(tmp_path / "direct.safetensors", DeepBasisNet(preset("tiny", use_bases=False)).eval())
+    config = EvaluationConfig(data=str(folder), format="folder", out=str(tmp_path / "out"), model=str(model),
+                              baselines=True, direct_model=str(direct), limit=2)
+    with pytest.warns(UserWarning, match="skipping"):
+        summary = run_evaluation(config, progress=False)
+    assert "direct (no bases)" in summary["rows"] and summary["rows"]["direct (no bases)"]["render_rmse"] > 0
