@@ -15,8 +15,16 @@ material:
   same difference in albedo units is reported beside it (dark materials make the relative one
   large).
 
-Writes the JSON report and ``highlight_leak.png`` beside it: the demo's photo, its predicted and
-true diffuse, and the highlight region.
+On real photos there is no truth: the imprint is measured where the flash's highlight falls (the
+brightest 5% of the lighting mark, a glossy reference rendered under the light the capture found):
+the diffuse luminance there minus elsewhere, over its mean. A blob makes it positive, a hole
+negative; real surfaces vary, so its magnitude over many photos is the figure (``mean_abs``). The
+same is measured on the held-out phone scenes (``data scenes``; photo 00, with the truth-based leak
+beside) and on the 13 photos of ``real-flash-photos``, with the specular map's tint (its mean sRGB
+channels' spread: a dielectric's is grey).
+
+Writes the JSON report and ``highlight_leak.png`` beside it: the contact sheet of the real photos,
+a row each: photo, diffuse, normal, roughness, specular, the re-render under the found flash.
 """
 
 from __future__ import annotations
@@ -28,7 +36,7 @@ from pathlib import Path
 import mideepbasis  # noqa: F401
 import numpy as np
 import torch
-from common import RESULTS, shared_predictions, write_report
+from common import RESULTS, SHARED_TEST, shared_predictions, write_report
 
 from mideepbasis import constants, geometry
 from mideepbasis.capturing import CaptureConfig, Capturer
@@ -63,14 +71,112 @@ def highlight_leak(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.T
     return (inside - outside) / scale, inside - outside, region
 
 
+def imprint(diffuse: torch.Tensor, light: torch.Tensor, fov: float, convention: str, extent: float = 1.0) -> float:
+    """The flash's imprint in a diffuse map (3, H, W) captured under ``light`` (3,): mean luminance
+    where the lighting mark's highlight falls (its brightest ``HIGHLIGHT_SHARE``) minus elsewhere,
+    over the mean (no truth needed)."""
+    from mideepbasis.model.inputs import lighting_mark
+
+    height, width = diffuse.shape[-2:]
+    mark = luminance(lighting_mark(light.view(1, 3), height, width, fov, convention, extent))[0]
+    region = mark >= torch.quantile(mark.flatten(), 1.0 - HIGHLIGHT_SHARE)
+    value = luminance(diffuse[None])[0]
+    return float((value[region].mean() - value[~region].mean()) / value.mean().clamp_min(1e-3))
+
+
+def specular_tint(specular: torch.Tensor) -> float:
+    """Spread (largest minus smallest) of a specular map's (3, H, W) mean sRGB channels."""
+    from mideepbasis.imageio import linear_to_srgb
+
+    means = linear_to_srgb(specular.clamp(0, 1)).mean(dim=(1, 2))
+    return float(means.max() - means.min())
+
+
+def real_photos(capturer, folder: Path) -> tuple[dict, list[np.ndarray]]:
+    """Each photo of ``folder`` captured: its imprint and specular tint, and its contact-sheet row."""
+    from mideepbasis.imageio import linear_to_srgb
+    from mideepbasis.render import render_flash
+
+    figures, rows = {}, []
+    for path in sorted(p for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg")):
+        result = capturer.capture(path)
+        maps = result.material.to_tensor()
+        light = result.light_position
+        figures[path.stem] = {"imprint": imprint(maps[constants.DIFFUSE], light, result.fov, capturer.convention),
+                              "specular_tint": specular_tint(maps[constants.SPECULAR])}
+        with torch.no_grad():
+            rerender = render_flash(maps[None], light.view(1, 1, 3), fov=result.fov, convention=capturer.convention)[0, 0]
+        tiles = [linear_to_srgb(result.photo.clamp(0, 1)), linear_to_srgb(maps[constants.DIFFUSE]),
+                 maps[constants.NORMAL] * 0.5 + 0.5, maps[constants.ROUGHNESS].expand(3, -1, -1),
+                 linear_to_srgb(maps[constants.SPECULAR]), linear_to_srgb(rerender.clamp(0, 1))]
+        small = [torch.nn.functional.interpolate(t[None].float(), size=(128, 128), mode="area")[0] for t in tiles]
+        rows.append(torch.cat(small, dim=2).permute(1, 2, 0).numpy())
+    return figures, rows
+
+
+def phone_scenes(capturer, folder: Path, convention: str) -> dict:
+    """Photo 00 of each calibrated scene captured: its imprint and the truth-based leak."""
+    from mideepbasis.evaluation.real import load_scene, scene_folders, true_maps
+
+    figures = {}
+    for scene_folder in scene_folders(folder):
+        scene = load_scene(scene_folder)
+        result = capturer.with_config(fov=scene.fov(0)).capture(scene.photos[0])
+        maps = result.material.to_tensor()
+        truth = true_maps(scene, maps.shape[-1])
+        leak, _, _ = highlight_leak(maps[None], truth[None], scene.lights[:1], scene.fov(0), convention)
+        figures[scene.name] = {"imprint": imprint(maps[constants.DIFFUSE], result.light_position, result.fov,
+                                                  convention),
+                               "true_imprint": imprint(truth[constants.DIFFUSE], result.light_position, result.fov,
+                                                       convention),
+                               "leak": float(leak[0]), "specular_tint": specular_tint(maps[constants.SPECULAR])}
+    return figures
+
+
+def summary(figures: dict) -> dict:
+    """Means over photos of the imprint's magnitude and sign, and of the specular tint."""
+    values = {key: np.array([f[key] for f in figures.values() if np.isfinite(f[key])]) for key in next(iter(figures.values()))}
+    result = {"photos": len(figures), "mean_abs_imprint": float(np.abs(values["imprint"]).mean()),
+              "mean_imprint": float(values["imprint"].mean()), "mean_specular_tint": float(values["specular_tint"].mean()),
+              "tinted_over_0.05": int((values["specular_tint"] > 0.05).sum())}
+    if "leak" in values:
+        result.update({"mean_leak": float(values["leak"].mean()),
+                       "mean_abs_true_imprint": float(np.abs(values["true_imprint"]).mean())})
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "highlight_leak.json")
+    parser.add_argument("--real", type=Path, default=SHARED_TEST.parent / "real-flash-photos",
+                        help="a folder of real flash photos (no truth)")
+    parser.add_argument("--scenes", type=Path, default=Path("runs/phone_scenes"),
+                        help="calibrated phone scenes with their truth (mideepbasis data scenes)")
+    parser.add_argument("--skip-shared", action="store_true", help="leave out the shared set and the demo")
     args = parser.parse_args()
 
     model = load_model(args.model)
     fov, convention = constants.DEFAULT_FOV_DEG, model.config.convention
+    capturer = Capturer(model, CaptureConfig())
+    report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE}
+    real, rows = real_photos(capturer, args.real)
+    report["real_photos"] = {**summary(real), "per_photo": real}
+    print(f"real photos ({len(real)}): mean |imprint| {report['real_photos']['mean_abs_imprint']:.4f} (signed "
+          f"{report['real_photos']['mean_imprint']:+.4f}), specular tint {report['real_photos']['mean_specular_tint']:.4f}, "
+          f"{report['real_photos']['tinted_over_0.05']} tinted over 0.05")
+    from mideepbasis.imageio import write_image
+
+    write_image(args.output.with_suffix(".png"), np.concatenate(rows, axis=0).clip(0, 1))
+    if args.scenes.is_dir():
+        scenes = phone_scenes(capturer, args.scenes, convention)
+        report["phone_scenes"] = {**summary(scenes), "per_scene": scenes}
+        print(f"phone scenes ({len(scenes)}): mean |imprint| {report['phone_scenes']['mean_abs_imprint']:.4f} (truth's "
+              f"{report['phone_scenes']['mean_abs_true_imprint']:.4f}), leak {report['phone_scenes']['mean_leak']:+.4f}, "
+              f"specular tint {report['phone_scenes']['mean_specular_tint']:.4f}")
+    if args.skip_shared:
+        write_report(args.output, "highlight_leak", report)
+        return
     truth, offsets, predicted = shared_predictions(model)
     leak, albedo_leak, _ = highlight_leak(predicted, truth, geometry.light_positions(offsets, fov), fov, convention,
                                           model.config.plane_extent)
@@ -80,33 +186,25 @@ def main() -> None:
     # The demo: the bundled photo captured as `mideepbasis demo` does, against its true maps and light.
     folder = example_capture_dir()
     recipe = json.loads((folder / "truth.json").read_text())
-    result = Capturer(model, CaptureConfig()).capture(folder / "photo.jpg")
+    result = capturer.capture(folder / "photo.jpg")
     size = result.material.width
     demo_maps = downsample_maps(Material.load(folder / "truth").to_tensor()[None], size)
     demo_light = geometry.light_positions(torch.tensor([recipe["offset"]]), recipe["fov_deg"])
-    demo_leak, demo_albedo_leak, demo_region = highlight_leak(result.material.to_tensor()[None], demo_maps, demo_light,
+    demo_leak, demo_albedo_leak, _ = highlight_leak(result.material.to_tensor()[None], demo_maps, demo_light,
                                                               recipe["fov_deg"], convention, model.config.plane_extent)
     demo_offset = recipe["offset"]
 
-    report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE,
+    report.update({
               "shared": {"materials": len(leak), "mean_leak": float(leak.mean()), "median_leak": float(leak.median()),
                          "share_over_0.05": float((leak > 0.05).float().mean()),
                          "mean_albedo_leak": float(albedo_leak.mean()), "median_albedo_leak": float(albedo_leak.median())},
-              "demo": {"leak": float(demo_leak[0]), "albedo_leak": float(demo_albedo_leak[0]), "found_offset": list(result.offset), "true_offset": list(demo_offset)}}
+              "demo": {"leak": float(demo_leak[0]), "albedo_leak": float(demo_albedo_leak[0]),
+                       "found_offset": list(result.offset), "true_offset": list(demo_offset)}})
     print(f"shared 84: mean leak {report['shared']['mean_leak']:+.4f}, median {report['shared']['median_leak']:+.4f}, "
           f"{100 * report['shared']['share_over_0.05']:.0f}% of materials over +0.05; in albedo: mean "
           f"{report['shared']['mean_albedo_leak']:+.4f}, median {report['shared']['median_albedo_leak']:+.4f}")
     print(f"demo: leak {report['demo']['leak']:+.4f}, in albedo {report['demo']['albedo_leak']:+.4f}")
 
-    from mideepbasis.imageio import linear_to_srgb, write_image
-
-    def hwc(image):
-        return image.permute(1, 2, 0).numpy().clip(0, 1)
-
-    panels = [linear_to_srgb(hwc(result.photo)), linear_to_srgb(hwc(result.material.to_tensor()[constants.DIFFUSE])),
-              linear_to_srgb(hwc(demo_maps[0, constants.DIFFUSE])),
-              np.repeat(demo_region[0, ..., None].float().numpy(), 3, axis=2)]
-    write_image(args.output.with_suffix(".png"), np.concatenate(panels, axis=1))
     write_report(args.output, "highlight_leak", report)
 
 

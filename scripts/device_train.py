@@ -30,7 +30,7 @@ VARIANTS = {
     "shading": ["--render-weight", "0", "--network-extra-inputs", "shading"],
     "shading_highpass": ["--render-weight", "0", "--network-extra-inputs", "shading,highpass"],
     # A wider local unit (started afresh, the rest from --init): it fitted two materials' normals
-    # to 0.014 in 300 steps where the shipped width 8 reached 0.066 (MODEL.md, 2026-11-30).
+    # to 0.014 in 300 steps where the shipped width 8 reached 0.066.
     "local16": ["--render-weight", "0", "--network-local-width", "16"],
     "local24": ["--render-weight", "0", "--network-local-width", "24"],
     # The normal unit (relief inputs, a slope shared by the bases): alone, the rest frozen as

@@ -118,9 +118,8 @@ class NetworkConfig:
     """Add the normal unit's slope to each basis's normal made unit (the slope scaled by the length
     of global plus deviation before the sum is made unit), so that it tilts every basis as it tilts
     a flat unit normal: as the normal pool trains the unit (``train.losses.normals_over_flat``). False
-    (checkpoints before 2026-12-01): added to the sum as it is, whose length the shipped local unit
-    makes about 1.7 (its deviations' z saturates at +1), which weakened the unit's relief by as
-    much."""
+    (older checkpoints): added to the sum as it is, whose length the shipped local unit makes about
+    1.7 (its deviations' z saturates at +1), which weakens the unit's relief by as much."""
 
     def __post_init__(self):
         unknown = sorted(set(self.extra_inputs) - set(EXTRA_INPUTS))
