@@ -181,6 +181,17 @@ def gltf_material(material, folder: Path, name: str = "captured material", pbr: 
 # --- the capture folder ------------------------------------------------------------------------------
 
 
+def dielectric_f0(material, pbr: dict | None = None) -> float:
+    """The mean F0 of a material's dielectric part: its specular's grey level weighted by 1 -
+    metallic (``to_pbr``), what a reader with one index of refraction (USD) can show."""
+    metallic = (pbr or material.to_pbr())["metallic"]
+    dielectric = (1.0 - metallic).clamp(min=0.0)
+    weight = float(dielectric.sum())
+    if weight <= 0:
+        return constants.DIELECTRIC_F0
+    return float((material.specular.mean(dim=0, keepdim=True) * dielectric).sum()) / weight
+
+
 def specular_color(material, pbr: dict | None = None) -> tuple[torch.Tensor, float]:
     """The specular colour of the metallic-roughness exports (glTF KHR_materials_specular, MaterialX):
     (the texture (3, H, W) in [0, 1], its factor >= 1), with dielectric F0 = 0.04 x factor x texture."""
@@ -243,7 +254,7 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
 
     # The MaterialX and USD files are written as text: loading pxr while the preview thread ran
     # deadlocked about one capture in ten (a library loaded beside running threads can).
-    from .interchange import write_materialx, write_usd
+    from .interchange import ior_of_f0, write_materialx, write_usd
     material = result.material
     maps = material.to_tensor()[None]
     # The re-rendering first, before the preview thread starts: drjit is then used by that
@@ -303,7 +314,7 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
         write_bytes(staging / "material.gltf", _json_bytes(gltf))
         # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
         write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
-        write_usd(staging)
+        write_usd(staging, ior=ior_of_f0(dielectric_f0(material, pbr)))
         rerender_rmse = float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt())
         sheet = report_sheet(result, rerender, error, rerender_rmse)  # all but the environment panel
         # Each preview, and the report with its environment panel, is encoded while the next traces.

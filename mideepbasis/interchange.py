@@ -16,6 +16,8 @@ metallic in B, as glTF packs them), ``normal.png`` (linear, (n + 1) / 2, +y up) 
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 from .imageio import write_bytes
@@ -99,9 +101,19 @@ def _usd_texture(material: str, node: str, role: str, colour_space: str, outputs
     return "\n".join(lines)
 
 
-def usd_document(name: str = "captured_material") -> str:
+def ior_of_f0(f0: float) -> float:
+    """The index of refraction whose Fresnel reflectance at normal incidence is ``f0``:
+    f0 = ((n - 1) / (n + 1))^2, so n = (1 + sqrt(f0)) / (1 - sqrt(f0)); f0 clamped to [0.01, 0.2]
+    (n 1.22 - 2.62, the dielectrics' range)."""
+    root = math.sqrt(min(max(f0, 0.01), 0.2))
+    return (1.0 + root) / (1.0 - root)
+
+
+def usd_document(name: str = "captured_material", ior: float = 1.5) -> str:
     """The text of ``material.usda`` (USD's ASCII format): a 2 x 2 quad on the ground (+y up, like
-    the glTF's) with a ``UsdPreviewSurface`` (metallic workflow) reading the glTF's textures.
+    the glTF's) with a ``UsdPreviewSurface`` (metallic workflow) reading the glTF's textures, its
+    ``ior`` the one of the captured dielectric F0 (``ior_of_f0``): the surface's only input for a
+    grey dielectric specular (Blender and other readers take F0 = 0.04, ior 1.5, without it).
 
     Written as text rather than through ``pxr``: the document is the same for every capture but
     for its name, and importing ``pxr`` (0.1 s) while the preview renders in another thread could
@@ -146,6 +158,7 @@ def Xform "sample"
         {{
             uniform token info:id = "UsdPreviewSurface"
             color3f inputs:diffuseColor.connect = </sample/{name}/base_color_texture.outputs:rgb>
+            float inputs:ior = {round(ior, 4):g}
             float inputs:metallic.connect = </sample/{name}/metallic_roughness_texture.outputs:b>
             normal3f inputs:normal.connect = </sample/{name}/normal_texture.outputs:rgb>
             float inputs:roughness.connect = </sample/{name}/metallic_roughness_texture.outputs:g>
@@ -167,6 +180,6 @@ def Xform "sample"
 """
 
 
-def write_usd(folder: Path, name: str = "captured_material") -> Path:
+def write_usd(folder: Path, name: str = "captured_material", ior: float = 1.5) -> Path:
     """``material.usda`` in ``folder`` (``usd_document``), written whole or not at all."""
-    return write_bytes(Path(folder) / "material.usda", usd_document(name).encode())
+    return write_bytes(Path(folder) / "material.usda", usd_document(name, ior).encode())

@@ -124,3 +124,29 @@ def test_the_usd_text_is_what_usd_itself_writes_and_takes_the_material_name(tmp_
     stage.GetRootLayer().Export(str(rewritten))
     assert rewritten.read_text() == path.read_text()
     assert not list(tmp_path.glob(".*"))  # no temporary left
+
+
+def test_the_index_of_refraction_gives_back_the_dielectric_f0():
+    from mideepbasis.interchange import ior_of_f0
+
+    assert ior_of_f0(0.04) == pytest.approx(1.5)
+    for f0 in (0.02, 0.032, 0.05, 0.1):
+        n = ior_of_f0(f0)
+        assert ((n - 1) / (n + 1)) ** 2 == pytest.approx(f0)
+    assert ior_of_f0(0.0) == ior_of_f0(0.01) and ior_of_f0(0.9) == ior_of_f0(0.2)  # the dielectrics' range
+
+
+@pytest.mark.skipif(not usd_available(), reason="usd-core is not installed (pip install 'mideepbasis[usd]')")
+def test_the_usd_surface_carries_the_captured_f0_as_its_ior(tmp_path):
+    from pxr import Usd, UsdShade
+
+    from mideepbasis.export import dielectric_f0
+    from mideepbasis.interchange import ior_of_f0
+
+    material = Material.constant(8, 8, diffuse=0.4, roughness=0.3, specular=0.032)
+    assert dielectric_f0(material) == pytest.approx(0.032, rel=1e-5)
+    path = write_usd(tmp_path, ior=ior_of_f0(dielectric_f0(material)))
+    stage = Usd.Stage.Open(str(path))
+    surface = UsdShade.Shader(stage.GetPrimAtPath("/sample/captured_material/surface"))
+    n = surface.GetInput("ior").Get()
+    assert ((n - 1) / (n + 1)) ** 2 == pytest.approx(0.032, rel=1e-3)
