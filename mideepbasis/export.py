@@ -181,6 +181,23 @@ def gltf_material(material, folder: Path, name: str = "captured material", pbr: 
 # --- the capture folder ------------------------------------------------------------------------------
 
 
+def write_height(folder: Path, material) -> dict:
+    """``height.exr`` (float32, [patch half-widths], zero mean) and ``height.png`` (16-bit, its range
+    mapped to [0, 1]) of the material's normals (``height.height_from_normals``, periodic for a
+    tileable capture); returns the range, which ``height.json`` records for the PNG."""
+    from .height import height_from_normals
+
+    tileable = bool((material.provenance.get("capture") or {}).get("tileable", False))
+    height = height_from_normals(material.normal, tileable)[0]
+    low, high = float(height.min()), float(height.max())
+    write_image(folder / "height.exr", height.numpy())
+    write_image(folder / "height.png", ((height - low) / max(high - low, 1e-12)).numpy(), bit_depth=16)
+    record = {"unit": "patch half-widths (the sample spans 2)", "png_black": low, "png_white": high,
+              "tileable": tileable}
+    write_bytes(folder / "height.json", _json_bytes(record))
+    return record
+
+
 def dielectric_f0(material, pbr: dict | None = None) -> float:
     """The mean F0 of a material's dielectric part: its specular's grey level weighted by 1 -
     metallic (``to_pbr``), what a reader with one index of refraction (USD) can show."""
@@ -295,6 +312,7 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
         if exr:
             material.save(staging, format="exr")
         material.save(staging, format="png")
+        write_height(staging, material)
         light = {"offset": list(result.offset), "offset_unit": "patch half-widths",
                  "offset_angle_deg": result.offset_angle_deg,
                  "offset_angles_deg": [math.degrees(math.atan(t / constants.camera_height(result.fov)))

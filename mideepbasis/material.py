@@ -213,7 +213,7 @@ class Material:
 
         Args:
             folder: target folder (created).
-            format: ``png`` (8-bit), ``png16`` or ``exr`` (float32).
+            format: ``png`` (8-bit, the normal 16-bit), ``png16`` or ``exr`` (float32).
             normal_convention: ``opengl`` (+y up, the in-memory convention) or ``directx`` (green
                 flipped, for tools that expect it).
 
@@ -227,6 +227,9 @@ class Material:
                 f"{self.source}: unknown normal convention '{normal_convention}' (expected opengl or directx)"
             )
         suffix, bit_depth = _SAVE_FORMATS[format]
+        # The normal is never quantised to 8 bits: gentle slopes would band (16-bit PNG instead).
+        bit_depths = {name: max(bit_depth, 16) if name == "normal" and suffix == "png" else bit_depth
+                      for name in MAP_NAMES}
         encoding = dict(_DEFAULT_ENCODING[suffix])
         if normal_convention == "directx":
             encoding["normal"] = "unsigned-directx" if suffix == "png" else "signed-directx"
@@ -234,7 +237,7 @@ class Material:
             "format": _FORMAT_NAME,
             "version": _FORMAT_VERSION,
             "file_format": suffix,
-            "bit_depth": bit_depth,
+            "bit_depth": bit_depths,
             "size": {"width": self.width, "height": self.height},
             "encoding": encoding,
             "convention": self.convention,
@@ -245,7 +248,7 @@ class Material:
         try:
             for name in MAP_NAMES:
                 data = _encode(getattr(self, name).detach(), encoding[name])
-                write_image(folder / f"{name}.{suffix}", data.permute(1, 2, 0), bit_depth=bit_depth)
+                write_image(folder / f"{name}.{suffix}", data.permute(1, 2, 0), bit_depth=bit_depths[name])
             write_bytes(folder / "material.json", text.encode())
         except ImageIOError as exc:
             raise MaterialError(str(exc)) from exc

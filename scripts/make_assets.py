@@ -158,4 +158,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    import argparse
+
+    # No options: parsing gives --help (which must not rebuild the files) and refuses any other.
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     main()

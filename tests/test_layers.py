@@ -11,7 +11,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mideepbasis"
 #: Layers, bottom to top: the first part of a module's name below the package, by layer.
 LAYERS = [
     {"constants", "errors", "startup", "configs"},
-    {"geometry", "imageio", "resampling", "tiling", "material", "interchange", "outputs"},
+    {"geometry", "imageio", "resampling", "tiling", "material", "interchange", "outputs", "height"},
     {"render"},
     {"model"},
     {"data"},

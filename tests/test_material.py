@@ -167,7 +167,15 @@ def test_save_load_round_trip(tmp_path, fmt):
     meta = json.loads((folder / "material.json").read_text())
     assert meta["format"] == "mideepbasis-material" and meta["version"] == 1
     assert meta["file_format"] == suffix
-    assert meta["bit_depth"] == {"png": 8, "png16": 16, "exr": 32}[fmt]
+    depth = {"png": 8, "png16": 16, "exr": 32}[fmt]
+    assert meta["bit_depth"] == {"normal": max(depth, 16) if suffix == "png" else depth, "diffuse": depth,
+                                 "roughness": depth, "specular": depth}
+    if suffix == "png":  # the files' own depths
+        import cv2
+
+        assert cv2.imread(str(folder / "normal.png"), cv2.IMREAD_UNCHANGED).dtype.name == "uint16"
+        expected_colour = "uint16" if fmt == "png16" else "uint8"
+        assert cv2.imread(str(folder / "diffuse.png"), cv2.IMREAD_UNCHANGED).dtype.name == expected_colour
     assert meta["size"] == {"width": 12, "height": 16}
     assert meta["convention"] == "deepbasis" and meta["provenance"] == provenance
     expected = ({"normal": "unsigned-opengl", "diffuse": "srgb", "roughness": "linear", "specular": "srgb"}
@@ -186,6 +194,15 @@ def test_save_load_round_trip(tmp_path, fmt):
     assert read_image(folder / f"roughness.{suffix}").shape == (16, 12, 1)  # grey on disk
 
 
+def read_normal_png(path) -> np.ndarray:
+    """A 16-bit RGB PNG's stored values (H, W, 3) (Pillow reads it as 8-bit; OpenCV as BGR)."""
+    import cv2
+
+    stored = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert stored.dtype == np.uint16
+    return stored[..., ::-1].astype(np.float64)
+
+
 def test_png_encodings_on_disk(tmp_path):
     """Stored values against the closed-form encodings (independent of the reader)."""
     m = random_material()
@@ -194,8 +211,8 @@ def test_png_encodings_on_disk(tmp_path):
     srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * np.maximum(lin, 0.0031308) ** (1 / 2.4) - 0.055)
     stored = np.asarray(Image.open(folder / "diffuse.png")).astype(np.float64)
     assert np.abs(stored - srgb * 255).max() <= 0.5 + 1e-3
-    stored = np.asarray(Image.open(folder / "normal.png")).astype(np.float64)
-    assert np.abs(stored - (m.normal.permute(1, 2, 0).double().numpy() + 1) / 2 * 255).max() <= 0.5 + 1e-3
+    stored = read_normal_png(folder / "normal.png")  # 16-bit
+    assert np.abs(stored - (m.normal.permute(1, 2, 0).double().numpy() + 1) / 2 * 65535).max() <= 0.5 + 1e-2
     stored = np.asarray(Image.open(folder / "roughness.png")).astype(np.float64)
     assert stored.ndim == 2 and np.abs(stored - m.roughness[0].double().numpy() * 255).max() <= 0.5 + 1e-3
 
@@ -205,10 +222,10 @@ def test_directx_normals_flip_green(tmp_path):
     gl = m.save(tmp_path / "gl", format="png")
     dx = m.save(tmp_path / "dx", format="png", normal_convention="directx")
     assert json.loads((dx / "material.json").read_text())["encoding"]["normal"] == "unsigned-directx"
-    a = np.asarray(Image.open(gl / "normal.png")).astype(int)
-    b = np.asarray(Image.open(dx / "normal.png")).astype(int)
+    a = read_normal_png(gl / "normal.png").astype(int)
+    b = read_normal_png(dx / "normal.png").astype(int)
     np.testing.assert_array_equal(a[..., [0, 2]], b[..., [0, 2]])
-    assert np.abs(b[..., 1] - (255 - a[..., 1])).max() <= 1  # (1 - y) / 2 = 1 - (1 + y) / 2, rounded
+    assert np.abs(b[..., 1] - (65535 - a[..., 1])).max() <= 1  # (1 - y) / 2 = 1 - (1 + y) / 2, rounded
     assert max_error(Material.load(dx).normal, m.normal) <= ROUND_TRIP_TOL["png"][0]
 
     dx_exr = m.save(tmp_path / "dx_exr", format="exr", normal_convention="directx")

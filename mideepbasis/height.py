@@ -1,0 +1,63 @@
+"""A height map from a normal map: the surface whose slopes the normals are (Frankot and Chellappa
+1988, the least-squares integration in the Fourier domain).
+
+Units and axes as the rest of the package (docs/ARCHITECTURE.md section 3): the sample spans
+[-1, 1]^2 [patch half-widths], rows run towards -y, heights are in patch half-widths along +z. A
+normal n gives the slopes dh/dx = -n_x / n_z and dh/dy = -n_y / n_z. A tileable map is integrated
+as periodic; any other is first mirrored into a periodic one (the slopes reflected with their
+signs), so its edges do not wrap into each other.
+
+Shapes: normals (3, H, W) unit vectors; heights (1, H, W).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+#: The smallest n_z the slopes are taken from: grazing normals would give unbounded slopes.
+MIN_NORMAL_Z = 0.05
+
+
+def slopes(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(dh/dcolumn, dh/drow) per pixel [patch half-widths per pixel] of unit normals (3, H, W)."""
+    _, height, width = normal.shape
+    nz = normal[2].clamp(min=MIN_NORMAL_Z)
+    # x runs with the columns (2 / W per pixel), y against the rows (2 / H per pixel).
+    return -normal[0] / nz * (2.0 / width), normal[1] / nz * (2.0 / height)
+
+
+def height_from_normals(normal: torch.Tensor, tileable: bool = False) -> torch.Tensor:
+    """The height field (1, H, W) [patch half-widths] whose central-difference slopes fit the
+    normals (3, H, W) best in the least-squares sense, with zero mean."""
+    along_columns, along_rows = (s.double() for s in slopes(normal))
+    height, width = along_columns.shape
+    if not tileable:  # mirror into a periodic field twice the size: h even, its slopes odd
+        along_columns = torch.cat([torch.cat([along_columns, -along_columns.flip(1)], 1),
+                                   torch.cat([along_columns.flip(0), -along_columns.flip(0).flip(1)], 1)], 0)
+        along_rows = torch.cat([torch.cat([along_rows, along_rows.flip(1)], 1),
+                                torch.cat([-along_rows.flip(0), -along_rows.flip(0).flip(1)], 1)], 0)
+    rows, columns = along_columns.shape
+    # The central difference's own spectrum, i sin(w): the integrated field's central differences
+    # then match the slopes exactly wherever the slopes are consistent.
+    u = torch.sin(2.0 * math.pi * torch.fft.fftfreq(columns, dtype=torch.float64))[None, :]
+    v = torch.sin(2.0 * math.pi * torch.fft.fftfreq(rows, dtype=torch.float64))[:, None]
+    numerator = -1j * u * torch.fft.fft2(along_columns) - 1j * v * torch.fft.fft2(along_rows)
+    denominator = u * u + v * v
+    spectrum = torch.where(denominator > 1e-12, numerator / denominator.clamp(min=1e-12), torch.zeros_like(numerator))
+    field = torch.fft.ifft2(spectrum).real[:height, :width]
+    return (field - field.mean()).float()[None]
+
+
+def normals_from_height(height: torch.Tensor, tileable: bool = False) -> torch.Tensor:
+    """Unit normals (3, H, W) of a height field (1, H, W) [patch half-widths] by central differences
+    (wrapped where ``tileable``, the edge repeated otherwise): the inverse of ``height_from_normals``."""
+    field = height[0].double()
+    padded = torch.nn.functional.pad(field[None, None], (1, 1, 1, 1), mode="circular" if tileable else "replicate")[0, 0]
+    along_columns = (padded[1:-1, 2:] - padded[1:-1, :-2]) / 2.0
+    along_rows = (padded[2:, 1:-1] - padded[:-2, 1:-1]) / 2.0
+    rows, columns = field.shape
+    dx, dy = along_columns * (columns / 2.0), -along_rows * (rows / 2.0)
+    normal = torch.stack([-dx, -dy, torch.ones_like(dx)])
+    return (normal / torch.linalg.vector_norm(normal, dim=0, keepdim=True)).float()
