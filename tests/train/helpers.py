@@ -40,3 +40,12 @@ def network_with_a_working_normal_unit():
             if name.endswith(("beta", "gamma")):
                 parameter.normal_(0.0, 0.5)
     return network
+
+
+def assert_the_runs_end_alike(tmp_path) -> None:
+    """The runs written to ``tmp_path / "a"`` and ``tmp_path / "b"`` end with the same weights, to the bit."""
+    from mideepbasis.model.checkpoint import load_model
+
+    b = load_model(tmp_path / "b" / "run" / "model.safetensors").state_dict()
+    for name, value in load_model(tmp_path / "a" / "run" / "model.safetensors").state_dict().items():
+        assert torch.equal(value, b[name]), name

@@ -13,7 +13,7 @@ from mideepbasis.data.procedural import GeneratorConfig
 from mideepbasis.model.checkpoint import load_model, read_checkpoint
 from mideepbasis.train import TrainConfig, Trainer
 
-from .helpers import network_with_a_working_normal_unit, tiny_config
+from .helpers import assert_the_runs_end_alike, network_with_a_working_normal_unit, tiny_config
 
 
 def test_checkpoints_store_the_resolved_config_and_a_resume_must_agree_with_it(tmp_path):
@@ -57,10 +57,11 @@ def test_the_command_line_resumes_with_the_stored_settings(tmp_path):
 def test_a_resume_refuses_a_damaged_checkpoint_in_one_line(tmp_path, capsys):
     """64 KiB of the tensor data overwritten with 0xFF (NaN in float32), the size kept: with its
     checksum, and without one (as a checkpoint of an earlier version), the resume refuses."""
-    from mideepbasis import cli
-    from mideepbasis.model.checkpoint import METADATA_KEY
     from safetensors import safe_open
     from safetensors.torch import save_file
+
+    from mideepbasis import cli
+    from mideepbasis.model.checkpoint import METADATA_KEY
     from tests.model.test_checkpoint import damage
 
     out = tmp_path / "cli"
@@ -160,9 +161,7 @@ def test_a_checkpoint_written_with_settings_since_removed_resumes(tmp_path):
     resumed = Trainer(tiny_config(tmp_path / "b"), resume=True, progress=False)
     assert resumed.step == 2
     resumed.run()
-    b = load_model(tmp_path / "b" / "run" / "model.safetensors").state_dict()
-    for name, value in load_model(tmp_path / "a" / "run" / "model.safetensors").state_dict().items():
-        assert torch.equal(value, b[name]), name
+    assert_the_runs_end_alike(tmp_path)
 
 
 def test_init_from_a_network_with_another_local_unit_loads_the_rest(tmp_path):

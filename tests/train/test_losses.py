@@ -11,8 +11,13 @@ import torch
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import Variation
 from mideepbasis.model.network import DeepBasisOutput
-from mideepbasis.train import (learning_rate_factor, rendering_loss, sample_render_geometry, saturation_penalty,
-                               variation_consistency_loss)
+from mideepbasis.train import (
+    learning_rate_factor,
+    rendering_loss,
+    sample_render_geometry,
+    saturation_penalty,
+    variation_consistency_loss,
+)
 
 
 def test_variation_consistency_loss_by_hand():

@@ -15,7 +15,7 @@ from mideepbasis.model.checkpoint import load_model
 from mideepbasis.model.network import DeepBasisOutput
 from mideepbasis.train import Trainer, augment
 
-from .helpers import local_pool_config, pool_config, tiny_config
+from .helpers import assert_the_runs_end_alike, local_pool_config, pool_config, tiny_config
 
 
 def test_augmentation_keeps_normals_consistent():
@@ -45,8 +45,8 @@ def moved_point(point: torch.Tensor, mirror: bool, turns: int) -> torch.Tensor:
 @pytest.mark.parametrize("mirror,turns", [(False, 1), (True, 0), (True, 3), (False, 2)])
 def test_a_moved_material_under_the_moved_flash_photographs_as_the_moved_photo(mirror, turns):
     from mideepbasis.model.inputs import RELIEF_DIRECTION_CHANNEL, relief_inputs
-    from mideepbasis.render import render_flash
     from mideepbasis.model.symmetry import dihedral
+    from mideepbasis.render import render_flash
 
     maps = generate(3, config=GeneratorConfig(size=32)).to_tensor()[None]
     light = torch.tensor([0.3, -0.5, 2.2])
@@ -101,9 +101,7 @@ def assert_only_the_unit_learns_and_resumes_exactly(make_config, tmp_path, sourc
     interrupted.run(stop_at=2)
     resumed = Trainer(make_config(tmp_path / "b", init=str(source)), resume=True, progress=False)
     resumed.run()
-    b = load_model(tmp_path / "b" / "run" / "model.safetensors").state_dict()
-    for name, value in load_model(tmp_path / "a" / "run" / "model.safetensors").state_dict().items():
-        assert torch.equal(value, b[name]), name
+    assert_the_runs_end_alike(tmp_path)
 
 
 def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path):
@@ -176,9 +174,9 @@ def test_the_local_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path)
 
 
 def test_the_local_unit_keeps_the_maps_it_is_told_to_as_its_init_gives_them(tmp_path):
+    from mideepbasis import constants
     from mideepbasis.model.checkpoint import save_checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
-    from mideepbasis import constants
 
     torch.manual_seed(0)
     source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny", normal_unit_width=4)))
