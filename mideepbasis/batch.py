@@ -59,6 +59,10 @@ class BatchItem:
     notes: list[str] = field(default_factory=list)
     """The capture's notes."""
 
+    repeated: bool = False
+    """The photo's folder was written by this batch already (a cluster's task run again after its
+    worker died): nothing was written."""
+
 
 def default_workers(photos: int) -> int:
     """One worker per core, at most one per photo."""
@@ -83,17 +87,14 @@ def die_with_parent(parent: int) -> None:
 _PR_SET_PDEATHSIG = 1
 
 
-def _start_worker(model, config, options: SaveOptions, workers: int, parent: int) -> None:
-    import signal
-
+def prepare_worker(model, config, options: SaveOptions, workers: int) -> None:
+    """Load the model once in this worker process and share the machine's cores with ``workers``
+    workers in all (a local batch's processes, or a cluster's workers on one machine)."""
     import drjit as dr
     import torch
 
     from .capturing.pipeline import Capturer
 
-    die_with_parent(parent)
-    # Ctrl-C is the main process's to handle: it stops the workers itself.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # A share of the cores each for torch (one, with a worker per core): the workers, not the
     # threads inside them, share the machine.
     # (drjit keeps its pool: Mitsuba's path tracer waits forever on a pool of one thread.)
@@ -105,18 +106,33 @@ def _start_worker(model, config, options: SaveOptions, workers: int, parent: int
     _WORKER["options"] = options
 
 
-def _capture_one(photo: Path, target: Path) -> BatchItem:
+def _start_worker(model, config, options: SaveOptions, workers: int, parent: int) -> None:
+    import signal
+
+    die_with_parent(parent)
+    # Ctrl-C is the main process's to handle: it stops the workers itself.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    prepare_worker(model, config, options, workers)
+
+
+def capture_one(photo: Path, target: Path, batch: str | None = None) -> BatchItem:
+    """Capture ``photo`` and write its folder ``target`` in this worker (``prepare_worker``). With a
+    ``batch`` token the folder's manifest records it, and a folder that already holds it (written
+    by this batch before its worker died, the task then run again elsewhere) is left as it is."""
     import drjit as dr
 
     from .errors import MideepbasisError
     from .export import save_capture
-    from .outputs import OutputFolder
+    from .outputs import OutputFolder, manifest_of
 
     started = time.perf_counter()
     options = _WORKER["options"]
+    if batch is not None and (manifest_of(target) or {}).get("batch") == batch:
+        return BatchItem(photo, target, notes=["written by this batch already"], seconds=0.0, repeated=True)
     try:
         # Checked and locked before the work; a photo's folder is replaced only where the tool wrote it.
-        folder = OutputFolder(target, overwrite=options.overwrite, inputs=[photo])
+        folder = OutputFolder(target, overwrite=options.overwrite, inputs=[photo],
+                              record={"batch": batch, "photo": str(photo)} if batch else None)
     except MideepbasisError as error:
         return BatchItem(photo, target, error=str(error))
     try:
@@ -216,7 +232,7 @@ def _run_batch(photos: list[Path], out: Path, model, config, options: SaveOption
             photo = next(queue, None)
             if photo is None:
                 return False
-            running.add(pool.submit(_capture_one, photo, out / photo.stem))
+            running.add(pool.submit(capture_one, photo, out / photo.stem))
             return True
 
         for _ in range(2 * workers):

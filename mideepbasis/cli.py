@@ -133,6 +133,10 @@ def _add_capture(subparsers, describe: bool = True, brief: bool = False) -> None
     parser.add_argument("--shape-previews", action=argparse.BooleanOptionalAction, default=None,
                         help="path trace the material on a sphere and a draped cloth too (default: for one photo, "
                              "not for several)")
+    parser.add_argument("--cluster", default=None, metavar="ADDRESS|local:N",
+                        help="send the photos to a Dask distributed cluster (its scheduler's address, or local:N to "
+                             "start one of N workers here); OUT and the photos must be on a file system every "
+                             "worker reaches")
     parser.add_argument("--workers", type=_positive_int, default=None,
                         help="worker processes for several photos (default: one per core); each loads the model once")
     parser.add_argument("--truth", type=Path, default=None, metavar="MATERIAL",
@@ -170,7 +174,7 @@ def _run_capture(args) -> int:
         truth = Material.load(args.truth)
     inputs = photos + ([args.truth] if args.truth is not None else [])
     config = config_from_arguments(CaptureConfig, args)
-    if not single:
+    if not single or args.cluster:
         return _capture_batch(photos, args, config)
     # Checked and locked before the work: a refusal comes first, and no other command writes it meanwhile.
     folder = OutputFolder(args.output, overwrite=args.overwrite, inputs=inputs)
@@ -193,7 +197,8 @@ def _run_capture(args) -> int:
 
 
 def _capture_batch(photos: list[Path], args, config) -> int:
-    """Several photos: worker processes (``capture.batch``), one line per photo as it completes."""
+    """Several photos: worker processes (``batch``) or a cluster's workers (``cluster``), one line per
+    photo as it completes."""
     from tqdm import tqdm
 
     from .batch import SaveOptions, capture_batch
@@ -201,8 +206,17 @@ def _capture_batch(photos: list[Path], args, config) -> int:
     failures = 0
     options = SaveOptions(exr=args.exr, preview_tiles=args.preview_tiles, shape_previews=bool(args.shape_previews))
     # Checked on the call, before the progress bar: a refusal is one line.
-    items = capture_batch(photos, args.output, args.model, config, options, args.workers, overwrite=args.overwrite)
+    if args.cluster:
+        from .cluster import cluster_batch
+
+        items = cluster_batch(photos, args.output, args.cluster, args.model, config, options, overwrite=args.overwrite)
+    else:
+        items = capture_batch(photos, args.output, args.model, config, options, args.workers,
+                              overwrite=args.overwrite)
     for item in tqdm(items, total=len(photos), desc="capturing", unit="photo"):
+        if item.repeated:  # a cluster's task run again after its worker died, the folder written before
+            tqdm.write(f"{item.photo.name}: written by this batch already -> {item.target}")
+            continue
         if item.error is not None:
             failures += 1
             tqdm.write(f"mideepbasis: skipped {item.photo}: {item.error}")

@@ -66,11 +66,12 @@ class OutputFolder:
         overwrite: replace an existing, non-empty target (only what the tool wrote there).
         inputs: files the command reads (photos, data folders): the target may not hold them.
         kind: what the folder holds (``capture``, ``evaluation``, ``batch``), in the manifest.
+        record: more for the manifest (JSON-able): a batch's token and the photo, say.
     """
 
     def __init__(self, target: str | os.PathLike, overwrite: bool = False, inputs: Iterable[str | os.PathLike] = (),
-                 kind: str = "capture"):
-        self.target, self.overwrite, self.kind = Path(target), overwrite, kind
+                 kind: str = "capture", record: dict | None = None):
+        self.target, self.overwrite, self.kind, self.record = Path(target), overwrite, kind, record or {}
         self._lock_fd: int | None = None
         self._staging: Path | None = None
         check_target(self.target, inputs)
@@ -104,7 +105,7 @@ class OutputFolder:
         """Write the manifest, swap the staging folder in for the target, remove the old result."""
         staging = self.staging
         written = sorted(str(path.relative_to(staging)) for path in staging.rglob("*") if path.name != MANIFEST)
-        (staging / MANIFEST).write_text(json.dumps({"written_by": "mideepbasis", "kind": self.kind,
+        (staging / MANIFEST).write_text(json.dumps({"written_by": "mideepbasis", "kind": self.kind, **self.record,
                                                     "entries": written}, indent=1))
         _fsync_folder(staging)
         _kill_hook("staged")
@@ -225,12 +226,23 @@ def check_replaceable(target: Path, overwrite: bool) -> None:
                          "--overwrite would lose it; move it or choose another folder")
 
 
+def manifest_of(folder: Path) -> dict | None:
+    """The manifest of ``folder`` (a folder the tool wrote), or None."""
+    try:
+        document = json.loads((Path(folder) / MANIFEST).read_text())
+    except (OSError, ValueError, RecursionError):
+        return None
+    if not isinstance(document, dict) or document.get("written_by") != "mideepbasis":
+        return None
+    return document
+
+
 def written_entries(folder: Path) -> set[str] | None:
     """The entries the manifest of ``folder`` lists, or None without a readable manifest."""
+    document = manifest_of(folder)
     try:
-        document = json.loads((folder / MANIFEST).read_text())
-        return {str(entry) for entry in document["entries"]} if document.get("written_by") == "mideepbasis" else None
-    except (OSError, ValueError, KeyError, TypeError, RecursionError):
+        return None if document is None else {str(entry) for entry in document["entries"]}
+    except (KeyError, TypeError):
         return None
 
 

@@ -16,7 +16,7 @@ LAYERS = [
     {"model"},
     {"data"},
     {"capturing"},
-    {"export", "reporting", "viewer", "batch"},
+    {"export", "reporting", "viewer", "batch", "cluster"},
     {"evaluation"},
     {"train"},
     {"cli", "__init__", "__main__"},
