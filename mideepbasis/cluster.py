@@ -42,7 +42,33 @@ class CapturePlugin(WorkerPlugin):
     def setup(self, worker) -> None:
         from .batch import prepare_worker
 
+        relax_memory_trimming()
         prepare_worker(self.model, self.config, self.options, self.workers)
+
+
+#: glibc's mallopt parameters (malloc.h): the trim and the mmap thresholds.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+
+#: The thresholds a worker's allocator is given [bytes]: glibc's largest dynamic ones.
+TRIM_THRESHOLD = MMAP_THRESHOLD = 32 * 2**20
+
+
+def relax_memory_trimming() -> None:
+    """Undo the trim threshold of 64 KiB that a Dask nanny gives its workers
+    (``MALLOC_TRIM_THRESHOLD_``). Set at all, it also stops glibc from raising its mmap threshold
+    as programs free large blocks: every buffer of torch over 128 KiB is then mapped and unmapped
+    afresh, faulted in page by page, and a capture ran 2.5 times slower. Elsewhere than glibc,
+    nothing."""
+    import ctypes
+
+    if "MALLOC_TRIM_THRESHOLD_" not in os.environ:
+        return
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+        libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+    except (AttributeError, OSError):
+        pass
 
 
 
