@@ -25,7 +25,7 @@ from typing import Iterator
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .batch import BatchItem, SaveOptions, check_batch, default_workers
+from .batch import BatchItem, SaveOptions, check_batch
 
 #: Times a photo's task is run again after its worker died.
 RETRIES = 3
@@ -36,14 +36,16 @@ class CapturePlugin(WorkerPlugin):
 
     name = "mideepbasis-capture"
 
-    def __init__(self, model, config, options: SaveOptions, workers: int):
-        self.model, self.config, self.options, self.workers = model, config, options, workers
+    def __init__(self, model, config, options: SaveOptions):
+        self.model, self.config, self.options = model, config, options
 
     def setup(self, worker) -> None:
         from .batch import prepare_worker
 
         relax_memory_trimming()
-        prepare_worker(self.model, self.config, self.options, self.workers)
+        # The worker's share of its machine: its own threads' worth of the cores.
+        workers = max(1, (os.cpu_count() or 1) // max(1, worker.state.nthreads))
+        prepare_worker(self.model, self.config, self.options, workers)
 
 
 #: glibc's mallopt parameters (malloc.h): the trim and the mmap thresholds.
@@ -79,8 +81,8 @@ def _capture_task(photo: str, target: str, batch: str) -> BatchItem:
 
 
 def cluster_client(address: str):
-    """(a Dask client of the cluster at ``address``, its workers per machine, a closing function);
-    ``local:N`` starts a cluster of N single-threaded worker processes on this machine."""
+    """(a Dask client of the cluster at ``address``, a closing function); ``local:N`` starts a
+    cluster of N single-threaded worker processes on this machine."""
     from distributed import Client, LocalCluster
 
     from .errors import InputError
@@ -96,15 +98,12 @@ def cluster_client(address: str):
             client.close()
             cluster.close()
 
-        return client, int(count), close
+        return client, close
     try:
         client = Client(address, timeout=30)
     except OSError as error:
         raise InputError(f"--cluster {address}: no scheduler answers there ({error})") from None
-    # Each worker keeps to its own threads: on a machine of W workers, its share of the cores.
-    threads = [info.get("nthreads", 1) for info in client.scheduler_info().get("workers", {}).values()]
-    workers = max(1, (os.cpu_count() or 1) // max(1, min(threads or [1])))
-    return client, workers, client.close
+    return client, client.close
 
 
 def cluster_batch(photos: list[Path], out: Path, address: str, model=None, config=None,
@@ -122,9 +121,9 @@ def cluster_batch(photos: list[Path], out: Path, address: str, model=None, confi
 def _run(photos: list[Path], out: Path, address: str, model, config, options: SaveOptions) -> Iterator[BatchItem]:
     from distributed import as_completed
 
-    client, workers, close = cluster_client(address)
+    client, close = cluster_client(address)
     try:
-        client.register_plugin(CapturePlugin(model, config, options, min(workers, default_workers(len(photos)))))
+        client.register_plugin(CapturePlugin(model, config, options))
         token = uuid.uuid4().hex
         futures = {client.submit(_capture_task, str(photo.resolve()), str((out / photo.stem).resolve()), token,
                                  key=f"capture-{token}-{index}", retries=RETRIES, pure=False): photo
