@@ -168,3 +168,8 @@ RANGE_TOLERANCE = 1e-4
 #: Specular albedo F0 of dielectrics in the metallic-roughness model, and the default specular of
 #: constant materials [unitless].
 DIELECTRIC_F0 = 0.04
+
+#: Linear values below this are encoded as if they were this by the refinement's sRGB loss
+#: (``RefineConfig.encoded_loss``): the sRGB curve's slope, infinite at 0, would make a black
+#: pixel's gradient blow up [linear].
+REFINE_ENCODING_FLOOR = 1e-4

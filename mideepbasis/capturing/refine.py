@@ -22,6 +22,7 @@ import torch.nn.functional as F
 
 from .. import constants
 from ..configs import positive_int
+from ..imageio import linear_to_srgb
 from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps
 from ..resampling import downsample
 
@@ -194,16 +195,11 @@ def loss_settings(photo: torch.Tensor, predicted: torch.Tensor, config: RefineCo
     return pixel_weights, tied
 
 
-#: Linear values below this are encoded as if they were this (``encoded``): the sRGB curve's
-#: slope, infinite at 0, would make a black pixel's gradient blow up.
-ENCODING_FLOOR = 1e-4
-
-
 def encoded(linear: torch.Tensor) -> torch.Tensor:
-    """sRGB-encoded values of linear ones in [0, 1] (the IEC curve), with ``ENCODING_FLOOR``: what
-    the refinement's ``encoded_loss`` compares (``render.fit`` computes the same)."""
-    linear = linear.clamp(min=ENCODING_FLOOR)
-    return torch.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+    """sRGB-encoded values of linear ones in [0, 1] (``imageio.linear_to_srgb``), floored at
+    ``constants.REFINE_ENCODING_FLOOR``: what the refinement's ``encoded_loss`` compares
+    (``render.fit`` computes the same)."""
+    return linear_to_srgb(linear.clamp(min=constants.REFINE_ENCODING_FLOOR))
 
 
 def tied_speculars(global_bases: torch.Tensor) -> torch.Tensor:

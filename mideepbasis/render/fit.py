@@ -37,6 +37,7 @@ import mitsuba as mi
 import numpy as np
 
 from .. import constants
+from ..imageio import linear_to_srgb
 from .bridge import flash_renderer
 
 #: Adam's moment decay rates and epsilon, as ``torch.optim.Adam``'s defaults (``SmallAdam``).
@@ -162,13 +163,10 @@ def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int, normals_
 
 
 def _encoded(linear):
-    """sRGB encoding of linear values in [0, 1], as ``capturing.refine.encoded`` (with its floor)."""
-    linear = dr.maximum(linear, ENCODING_FLOOR)
+    """sRGB encoding of linear values in [0, 1] inside the recorded step (``imageio.linear_to_srgb``'s
+    curve on drjit arrays), floored as ``capturing.refine.encoded``."""
+    linear = dr.maximum(linear, constants.REFINE_ENCODING_FLOOR)
     return dr.select(linear <= 0.0031308, 12.92 * linear, 1.055 * dr.power(linear, 1.0 / 2.4) - 0.055)
-
-
-#: As ``capturing.refine.ENCODING_FLOOR``.
-ENCODING_FLOOR = 1e-4
 
 
 def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step: mi.Float, data: FitInputs,
@@ -252,8 +250,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     as_float = lambda array: mi.Float(np.ascontiguousarray(array, dtype=np.float32).reshape(-1))  # noqa: E731
     target = np.asarray(target, dtype=np.float32).reshape(3, -1)
     if encoded_loss:
-        floored = np.maximum(target, ENCODING_FLOOR)
-        target = np.where(floored <= 0.0031308, 12.92 * floored, 1.055 * floored ** (1 / 2.4) - 0.055).astype(np.float32)
+        target = linear_to_srgb(np.maximum(target, np.float32(constants.REFINE_ENCODING_FLOOR)))
     data = FitInputs(weights=[as_float(w) for w in weights], deviations=as_float(deviations),
                      predicted=as_float(predicted), movable=as_float(np.tile(movable, bases)),
                      target=mi.Color3f(*[as_float(channel) for channel in target]),
