@@ -272,10 +272,11 @@ GREY_ROW, LAMBERTIAN_ROW, TRUTH_ROW = "flat grey", "Lambertian: photo / falloff"
 PAPER_ROW = "the paper's DeepBasis (Table 2)"
 
 
-def materials_of_scene(capturer, scene: CalibratedScene, index: int, photo: torch.Tensor) -> dict[str, torch.Tensor]:
+def materials_of_scene(capturer, scene: CalibratedScene, index: int, photo: torch.Tensor,
+                       truth: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """The materials (10, H, W) each row re-renders, captured from photo ``index`` (linear, (3, H,
     W), as capture loads it) of the scene: the capture with and without its refinement (one
-    search, one prediction), the baselines, and the truth where the scene has one."""
+    search, one prediction), the baselines, and the scene's ``truth`` (``true_maps``) where given."""
     from ..material import Material
 
     capturer = capturer.with_config(fov=scene.fov(index))
@@ -291,8 +292,8 @@ def materials_of_scene(capturer, scene: CalibratedScene, index: int, photo: torc
     materials = {CAPTURE_ROW: as_written(refined.maps), UNREFINED_ROW: as_written(prediction.maps),
                  GREY_ROW: constant_material(height, width, **FLAT_GREY),
                  LAMBERTIAN_ROW: lambertian_baseline(photo, scene, index, capturer.convention)}
-    if scene.truth is not None:
-        materials[TRUTH_ROW] = true_maps(scene, width)
+    if truth is not None:
+        materials[TRUTH_ROW] = truth
     return materials
 
 
@@ -322,17 +323,17 @@ def evaluate_scene(capturer, scene: CalibratedScene, inputs: list[int]) -> dict:
     from .metrics import map_rmse
 
     photos = scene_photos(scene, capturer.config.resolution)
+    truth = None if scene.truth is None else true_maps(scene, photos.shape[-1])  # read once
     rows: dict[str, dict[str, list[float]]] = {}
     renders = {}
     for index in inputs:
         if not 0 <= index < len(photos):
             raise InputError(f"{scene.name}: no photo {index:02d} to capture from ({len(photos)} photos)")
-        for row, maps in materials_of_scene(capturer, scene, index, photos[index]).items():
+        for row, maps in materials_of_scene(capturer, scene, index, photos[index], truth).items():
             scores = score_rerenders(maps, photos, scene, index, capturer.convention)
             figures = {"rmse": scores.rmse, "flip": scores.flip, "ssim": scores.ssim,
                        "rmse_least_squares": scores.rmse_least_squares}
-            if scene.truth is not None:
-                truth = true_maps(scene, maps.shape[-1])
+            if truth is not None:
                 figures.update({f"{name}_rmse": float(value) for name, value in map_rmse(maps[None], truth[None]).items()})
             for name, value in figures.items():
                 rows.setdefault(row, {}).setdefault(name, []).append(value)
