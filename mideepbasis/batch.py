@@ -165,11 +165,11 @@ def check_batch(photos: list[Path], out: Path, model=None, overwrite: bool = Fal
     or whose model does not load (the workers would each fail to start). Makes ``out``."""
     from .errors import InputError
     from .model.checkpoint import read_checkpoint, shipped_model_path
-    from .outputs import check_target, probe_writable
+    from .outputs import check_target, probe_writable, refuse_occupied
 
     check_target(out, photos)
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError(f"output folder {out} exists and is not empty: choose another or pass --overwrite")
+    if not overwrite:  # (with it, each photo's folder is replaced only where the tool wrote it)
+        refuse_occupied(out)
 
     seen: dict[str, Path] = {}
     for photo in photos:

@@ -208,13 +208,19 @@ def check_target(target: Path, inputs: Iterable[str | os.PathLike] = ()) -> None
             raise InputError(f"output {target} holds the input {item}: give a folder of its own")
 
 
+def refuse_occupied(target: Path) -> None:
+    """Refuse, in one line, an existing folder that is not empty (the user did not ask to overwrite)."""
+    if target.is_dir() and any(target.iterdir()):
+        raise InputError(f"output folder {target} exists and is not empty: choose another or pass --overwrite")
+
+
 def check_replaceable(target: Path, overwrite: bool) -> None:
     """Refuse an existing, non-empty target unless ``overwrite`` and its manifest lists all it holds."""
     entries = sorted(str(path.relative_to(target)) for path in target.rglob("*"))
     if not entries:
         return
     if not overwrite:
-        raise InputError(f"output folder {target} exists and is not empty: choose another or pass --overwrite")
+        refuse_occupied(target)
     written = written_entries(target)
     if written is None:
         raise InputError(f"output folder {target} was not written by mideepbasis (it has no {MANIFEST}): "
