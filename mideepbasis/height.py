@@ -30,7 +30,8 @@ def slopes(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def height_from_normals(normal: torch.Tensor, tileable: bool = False) -> torch.Tensor:
     """The height field (1, H, W) [patch half-widths] whose central-difference slopes fit the
-    normals (3, H, W) best in the least-squares sense, with zero mean."""
+    normals (3, H, W) best in the least-squares sense, with zero mean: the inverse of
+    ``data.procedural.core.height_to_normal`` (edges repeated, or wrapped where ``tileable``)."""
     along_columns, along_rows = (s.double() for s in slopes(normal))
     height, width = along_columns.shape
     if not tileable:  # mirror into a periodic field twice the size: h even, its slopes odd
@@ -48,16 +49,3 @@ def height_from_normals(normal: torch.Tensor, tileable: bool = False) -> torch.T
     spectrum = torch.where(denominator > 1e-12, numerator / denominator.clamp(min=1e-12), torch.zeros_like(numerator))
     field = torch.fft.ifft2(spectrum).real[:height, :width]
     return (field - field.mean()).float()[None]
-
-
-def normals_from_height(height: torch.Tensor, tileable: bool = False) -> torch.Tensor:
-    """Unit normals (3, H, W) of a height field (1, H, W) [patch half-widths] by central differences
-    (wrapped where ``tileable``, the edge repeated otherwise): the inverse of ``height_from_normals``."""
-    field = height[0].double()
-    padded = torch.nn.functional.pad(field[None, None], (1, 1, 1, 1), mode="circular" if tileable else "replicate")[0, 0]
-    along_columns = (padded[1:-1, 2:] - padded[1:-1, :-2]) / 2.0
-    along_rows = (padded[2:, 1:-1] - padded[:-2, 1:-1]) / 2.0
-    rows, columns = field.shape
-    dx, dy = along_columns * (columns / 2.0), -along_rows * (rows / 2.0)
-    normal = torch.stack([-dx, -dy, torch.ones_like(dx)])
-    return (normal / torch.linalg.vector_norm(normal, dim=0, keepdim=True)).float()

@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from mideepbasis.data.procedural import GeneratorConfig, generate
-from mideepbasis.height import height_from_normals, normals_from_height
+from mideepbasis.data.procedural.core import height_to_normal
+from mideepbasis.height import height_from_normals
+
+
+def normals_from_height(height: torch.Tensor, tileable: bool = False) -> torch.Tensor:
+    """The generator's own normals of a height field (1, H, W) (central differences): the
+    independent reference the integration must invert."""
+    return torch.from_numpy(height_to_normal(height[0].numpy(), tileable)).permute(2, 0, 1).float()
 
 #: Largest RMSE of the normals given back by the height's central differences: procedural normals
 #: are the central differences of a height field, so the integration gives it back to float rounding.
