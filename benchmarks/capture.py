@@ -47,12 +47,12 @@ sys.path.insert(0, str(Path(__file__).parent))
 from common import RESULTS, write_report  # noqa: E402
 TARGETS_S = {"known_light": 0.5, "search": 1.0, "search_refine": 1.2, "search_refine_paper": 4.0, "command": 3.0,
              "search_refine_1024": 5.0, "command_paper": 4.0, "command_1024": 5.0, "command_2048": 15.0,
-             "command_no_shapes": 3.0}
+             "command_4096": 80.0, "command_no_shapes": 3.0}
 
 #: Whole ``mideepbasis capture`` commands timed from outside: name -> options.
 COMMANDS = {"command": (), "command_paper": ("--refine-steps", "500", "--refine-normals"),
             "command_1024": ("--resolution", "1024"), "command_2048": ("--resolution", "2048"),
-            "command_no_shapes": ("--no-shape-previews",)}
+            "command_4096": ("--resolution", "4096"), "command_no_shapes": ("--no-shape-previews",)}
 CONFIGURATIONS = {
     "known_light": {"light": (0.25, -0.17), "refine": {"steps": 0}, "resolution": 256},
     "search": {"light": None, "refine": {"steps": 0}, "resolution": 256},
@@ -197,7 +197,7 @@ def main() -> None:
                   f"{results[name]['photos_per_second_after_first']:.2f} photos/s after the first "
                   f"(target 1), peak {results[name]['peak_memory_mib']:.0f} MiB")
             continue
-        repeats = args.repeats if "1024" not in name else max(2, args.repeats // 2)
+        repeats = args.repeats if "1024" not in name and "4096" not in name else max(2, args.repeats // 2)
         command = [sys.executable, __file__, "--child", name, "--repeats", str(repeats)]
         if args.model:
             command += ["--model", args.model]

@@ -17,6 +17,8 @@ Files of a capture folder:
   (``import mideepbasis.render`` registers it before ``mi.load_file``);
 - ``material.gltf`` with ``base_color.png``, ``metallic_roughness.png`` and ``specular_color.png``:
   a glTF 2.0 quad with the metallic-roughness approximation and KHR_materials_specular;
+- ``height.exr``, ``height.png``, ``height.json``: the height integrated from the normals, which
+  ``material.mtlx`` and ``material.usda`` (``interchange.py``) displace their surface by;
 - ``report.png`` and ``report.html``.
 """
 
@@ -213,9 +215,10 @@ def specular_color(material, pbr: dict | None = None) -> tuple[torch.Tensor, flo
     """The specular colour of the metallic-roughness exports (glTF KHR_materials_specular, MaterialX):
     (the texture (3, H, W) in [0, 1], its factor >= 1), with dielectric F0 = 0.04 x factor x texture."""
     metallic = (pbr or material.to_pbr())["metallic"]
-    specular = material.specular * (1 - metallic) + constants.DIELECTRIC_F0 * metallic
+    # In place: each (3, H, W) temporary is 0.2 GB at 4096 px.
+    specular = (material.specular * (1 - metallic)).add_(constants.DIELECTRIC_F0 * metallic)
     factor = max(1.0, float(specular.max()) / constants.DIELECTRIC_F0)
-    return (specular / (constants.DIELECTRIC_F0 * factor)).clamp(0, 1), factor
+    return specular.div_(constants.DIELECTRIC_F0 * factor).clamp_(0, 1), factor
 
 
 #: Largest map side the path-traced previews are given [pixels]. A preview is 256 px wide and
@@ -265,9 +268,9 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
                    environment_sampler: str, progress: bool, truth, preview_tiles: float, shape_spp: int,
                    shape_sampler: str, shape_previews: bool) -> None:
     """The files of ``save_capture``, written into ``staging``."""
-    from .render import render_flash
+    from .render import release_memory, render_flash_tiled
     from .render.scenes import preview_scene, render_preview, shape_scene
-    from .reporting import report_sheet, write_report_page, write_report_sheet
+    from .reporting import report_panel, report_sheet, write_report_page, write_report_sheet
 
     # The MaterialX and USD files are written as text: loading pxr while the preview thread ran
     # deadlocked about one capture in ten (a library loaded beside running threads can).
@@ -276,10 +279,10 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
     maps = material.to_tensor()[None]
     # The re-rendering first, before the preview thread starts: drjit is then used by that
     # thread alone.
-    with torch.no_grad():
-        rerender = render_flash(maps, result.light_position.view(1, 1, 3), fov=result.fov,
-                                convention=material.convention)[0, 0]
+    rerender = render_flash_tiled(maps, result.light_position, fov=result.fov, convention=material.convention)
+    release_memory()
     shown = preview_maps(maps[0])
+    del maps  # 0.7 GB at 4096 px, beside the material's own maps
 
     finished: queue.SimpleQueue = queue.SimpleQueue()  # (file name, linear (H, W, 3)) of each preview, then None
 
@@ -309,10 +312,21 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
     # and the other files run beside it. At 1024 px the exports before it had delayed it by 0.9 s.
     with ThreadPoolExecutor(max_workers=1) as tracer, background_writes():
         traced = tracer.submit(path_trace)
+        # The photo, the re-rendering and its error first, and the sheet's panels of them: then the
+        # full-size images are let go before the maps' exports (0.4 GB at 4096 px).
+        error = (rerender.clamp(0, 1) - result.photo).abs()
+        rerender_rmse = float(error.square().mean().sqrt())
+        # Clipped by torch on every core: NumPy's clip of the permuted views took 0.4 s at 2048 px.
+        write_image(staging / "photo.png", _hwc(result.photo.clamp(0, 1)), encode_srgb=True)
+        write_image(staging / "rerender.png", _hwc(rerender.clamp(0, 1)), encode_srgb=True)
+        sheet = report_sheet(result, rerender, report_panel(error), rerender_rmse)  # all but the environment panel
+        write_image(staging / "error.png", _hwc(error.mul_(4).clamp_(0, 1)), encode_srgb=True)
+        del error, rerender
         if exr:
             material.save(staging, format="exr")
         material.save(staging, format="png")
-        write_height(staging, material)
+        height = write_height(staging, material)  # before the MaterialX and USD files, which use its range
+        height_range = (height["png_black"], height["png_white"])
         light = {"offset": list(result.offset), "offset_unit": "patch half-widths",
                  "offset_angle_deg": result.offset_angle_deg,
                  "offset_angles_deg": [math.degrees(math.atan(t / constants.camera_height(result.fov)))
@@ -320,21 +334,15 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
                  "position": result.light_position.tolist(), "fov_deg": result.fov, "fov_source": result.fov_source,
                  "searched": result.searched, "search": result.search_history}
         write_bytes(staging / "light.json", _json_bytes(light))
-        error = (rerender.clamp(0, 1) - result.photo).abs()
-        # Clipped by torch on every core: NumPy's clip of the permuted views took 0.4 s at 2048 px.
-        write_image(staging / "photo.png", _hwc(result.photo.clamp(0, 1)), encode_srgb=True)
-        write_image(staging / "rerender.png", _hwc(rerender.clamp(0, 1)), encode_srgb=True)
-        write_image(staging / "error.png", _hwc((error * 4).clamp(0, 1)), encode_srgb=True)
         (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width,
                                                      material.convention))
         pbr = material.to_pbr()  # once, for the glTF and the MaterialX export
         gltf = gltf_material(material, staging, pbr=pbr)
         write_bytes(staging / "material.gltf", _json_bytes(gltf))
         # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).
-        write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0])
-        write_usd(staging, ior=ior_of_f0(dielectric_f0(material, pbr)))
-        rerender_rmse = float(((rerender.clamp(0, 1) - result.photo) ** 2).mean().sqrt())
-        sheet = report_sheet(result, rerender, error, rerender_rmse)  # all but the environment panel
+        write_materialx(staging, gltf["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0],
+                        height_range=height_range)
+        write_usd(staging, ior=ior_of_f0(dielectric_f0(material, pbr)), height_range=height_range)
         # Each preview, and the report with its environment panel, is encoded while the next traces.
         images = {}
         while (item := finished.get()) is not None:

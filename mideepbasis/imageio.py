@@ -392,45 +392,60 @@ _BIT_DEPTHS = {"png": (8, 16), "jpeg": (8,), "exr": (16, 32)}
 #: files 5 % larger (benchmarks/README.md, capture section).
 PNG_COMPRESS_LEVEL = 1
 
-#: The writer of ``background_writes`` in force, if any: (thread pool, the writes it was given, the
-#: most writes that may be unfinished at once).
-_BACKGROUND: contextvars.ContextVar[tuple[ThreadPoolExecutor, list[Future], int] | None] = contextvars.ContextVar(
-    "background_writes", default=None)
+#: The writer of ``background_writes`` in force, if any: (thread pool, the writes it was given with
+#: the bytes each holds, the most bytes that unfinished writes may hold at once).
+_BACKGROUND: contextvars.ContextVar[tuple[ThreadPoolExecutor, list[tuple[Future, int]], int] | None] = \
+    contextvars.ContextVar("background_writes", default=None)
+
+#: Most bytes of images that unfinished background writes hold at once [bytes]: six 2048 px maps
+#: (48 MB each) wait at once; an image of more than half of it (a 4096 px map, 192 MB) is written
+#: by the caller once the others are done, so that a 4096 px capture's peak memory stays within
+#: 3 GB (benchmarks/README.md).
+BACKGROUND_BYTES = 6 * 2048 * 2048 * 3 * 4
+
+#: Rows encoded at once by ``_quantised``: the float temporaries of the clip, the sRGB curve and the
+#: rounding are a few MB at any width, not copies of the whole image.
+ENCODE_ROWS = 256
 
 
 @contextlib.contextmanager
-def background_writes(threads: int = 2) -> Iterator[None]:
+def background_writes(threads: int = 2, most_bytes: int = BACKGROUND_BYTES) -> Iterator[None]:
     """Within this block ``write_image`` and ``write_bytes`` check their input at once and hand
     the encoding and writing to ``threads`` worker threads (zlib, NumPy and OpenEXR release the
     GIL, so they overlap with the caller's work); the block's end waits for them all and raises
     the first failure. Files may be finished in any order: use it where a whole folder is
-    published at the end (``export.save_capture`` renames its staging folder)."""
+    published at the end (``export.save_capture`` renames its staging folder). A write waits
+    while the unfinished ones hold ``most_bytes`` of images (one is always let through)."""
     if _BACKGROUND.get() is not None:  # nested: the outer block waits
         yield
         return
     pool = ThreadPoolExecutor(threads, thread_name_prefix="image-writer")
-    writes: list[Future] = []
-    # Each unfinished write holds its image (48 MB at 2048 x 2048): one running and two waiting per thread.
-    token = _BACKGROUND.set((pool, writes, 3 * threads))
+    writes: list[tuple[Future, int]] = []
+    token = _BACKGROUND.set((pool, writes, most_bytes))
     try:
         yield
     finally:
         _BACKGROUND.reset(token)
         pool.shutdown(wait=True)
-    for write in writes:
+    for write, _ in writes:
         write.result()  # the first failure, an ImageIOError naming its file
 
 
-def _submit(function: Callable[[], Path], path: Path) -> Path:
-    """Run ``function`` now, or on the writer threads of ``background_writes``."""
+def _submit(function: Callable[[], Path], path: Path, size: int = 0) -> Path:
+    """Run ``function`` now, or on the writer threads of ``background_writes``; ``size`` [bytes]
+    is what the write holds until it is done."""
     background = _BACKGROUND.get()
     if background is None:
         return function()
     pool, writes, most = background
-    pending = [write for write in writes if not write.done()]
-    if len(pending) >= most:
-        concurrent.futures.wait(pending[:len(pending) - most + 1])
-    writes.append(pool.submit(function))
+    pending = [(write, held) for write, held in writes if not write.done()]
+    if size > most // 2:  # a 4096 px map: written here, once the others are done, holding no second copy
+        concurrent.futures.wait([write for write, _ in pending])
+        return function()
+    while pending and sum(held for _, held in pending) + size > most:
+        concurrent.futures.wait([write for write, _ in pending], return_when=concurrent.futures.FIRST_COMPLETED)
+        pending = [(write, held) for write, held in pending if not write.done()]
+    writes.append((pool.submit(function), size))
     return path
 
 
@@ -472,14 +487,14 @@ def write_image(
         allowed = " or ".join(map(str, _BIT_DEPTHS[kind]))
         raise ImageIOError(f"cannot write '{path}': bit depth {bit_depth} is not supported for {kind} ({allowed})")
     data = _as_hwc(path, image)
-    return _submit(lambda: _encode_and_write(path, kind, data, encode_srgb, bit_depth), path)
+    return _submit(lambda: _encode_and_write(path, kind, data, encode_srgb, bit_depth), path, data.nbytes)
 
 
 def _encode_and_write(path: Path, kind: str, data: np.ndarray, encode_srgb: bool, bit_depth: int) -> Path:
     """The encoding and the atomic write of ``write_image``, its input checked."""
     if kind == "exr":
         with np.errstate(over="ignore"):  # values beyond the half range (65504) become inf ...
-            data = data.astype(np.float16 if bit_depth == 16 else np.float32)
+            data = data.astype(np.float16 if bit_depth == 16 else np.float32, copy=False)
         if not np.isfinite(data).all():  # ... and are refused here
             raise ImageIOError(f"cannot write '{path}': values exceed the range of half floats")
         names = "RGB" if data.shape[2] == 3 else "Y"
@@ -487,12 +502,9 @@ def _encode_and_write(path: Path, kind: str, data: np.ndarray, encode_srgb: bool
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
         return _atomic(path, lambda tmp: OpenEXR.File(header, channels).write(str(tmp)))
 
-    data = np.clip(data, 0.0, 1.0)
-    if encode_srgb:
-        data = np.clip(linear_to_srgb(data), 0.0, 1.0)
     if bit_depth == 16:
         # Pillow cannot write 16-bit RGB PNGs; OpenCV can (it expects BGR).
-        data = np.round(data * 65535.0).astype(np.uint16)
+        data = _quantised(data, encode_srgb, np.uint16)
         data = data[..., 0] if data.shape[2] == 1 else data[..., ::-1]
 
         import cv2  # here, not on a writer thread: a library loaded beside running threads can deadlock
@@ -504,10 +516,23 @@ def _encode_and_write(path: Path, kind: str, data: np.ndarray, encode_srgb: bool
             tmp.write_bytes(buffer.tobytes())
 
         return _atomic(path, encode16)
-    data = np.round(data * 255.0).astype(np.uint8)
+    data = _quantised(data, encode_srgb, np.uint8)
     img = Image.fromarray(data[..., 0] if data.shape[2] == 1 else data)
     options = {"quality": 95} if kind == "jpeg" else {"compress_level": PNG_COMPRESS_LEVEL}
     return _atomic(path, lambda tmp: img.save(tmp, format=kind.upper(), **options))
+
+
+def _quantised(data: np.ndarray, encode_srgb: bool, dtype) -> np.ndarray:
+    """(H, W, C) floats clipped to [0, 1], sRGB-encoded if asked, as 8- or 16-bit integers,
+    ``ENCODE_ROWS`` rows at a time."""
+    top = float(np.iinfo(dtype).max)
+    out = np.empty(data.shape, dtype=dtype)
+    for start in range(0, data.shape[0], ENCODE_ROWS):
+        rows = np.clip(data[start:start + ENCODE_ROWS], 0.0, 1.0)
+        if encode_srgb:
+            rows = np.clip(linear_to_srgb(rows), 0.0, 1.0)
+        out[start:start + ENCODE_ROWS] = np.round(rows * top)
+    return out
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -517,7 +542,7 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
         ImageIOError: the write failed; an existing file is untouched.
     """
     path = Path(path)
-    return _submit(lambda: _atomic(path, lambda tmp: tmp.write_bytes(data)), path)
+    return _submit(lambda: _atomic(path, lambda tmp: tmp.write_bytes(data)), path, len(data))
 
 
 def _as_hwc(path: Path, image: np.ndarray | torch.Tensor) -> np.ndarray:

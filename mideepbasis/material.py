@@ -169,8 +169,10 @@ class Material:
         normal = t[constants.NORMAL]
         normal = torch.cat([normal[0:2], normal[2:3].clamp(min=0)], dim=0)
         normal = unit_vectors(normal, dim=0)
-        t = t.clamp(0, 1)
-        return cls(normal, t[constants.DIFFUSE], t[constants.ROUGHNESS], t[constants.SPECULAR], **kwargs)
+        reflectance = t[constants.REFLECTANCE].clamp(0, 1)  # not all ten channels: 0.2 GB less at 4096 px
+        start = constants.REFLECTANCE.start
+        return cls(normal, *(reflectance[part.start - start:part.stop - start]
+                             for part in (constants.DIFFUSE, constants.ROUGHNESS, constants.SPECULAR)), **kwargs)
 
     @classmethod
     def constant(
@@ -502,7 +504,8 @@ def _clamp_unit(source: str, name: str, t: torch.Tensor) -> torch.Tensor:
     tol = constants.RANGE_TOLERANCE
     if lo < -tol or hi > 1 + tol:
         raise MaterialError(f"{source}: {name} values lie in [{lo:.4g}, {hi:.4g}], outside [0, 1]")
-    return t.clamp(0, 1)
+    # No copy where nothing is clamped (as after ``from_tensor``): 0.5 GB at 4096 px.
+    return t if 0.0 <= lo and hi <= 1.0 else t.clamp(0, 1)
 
 
 def _encode(t: torch.Tensor, encoding: str) -> torch.Tensor:
@@ -511,7 +514,17 @@ def _encode(t: torch.Tensor, encoding: str) -> torch.Tensor:
         t = t * torch.tensor([1.0, -1.0, 1.0]).reshape(3, 1, 1)
     if encoding.startswith("unsigned"):
         return (t + 1) / 2
-    return linear_to_srgb(t) if encoding == "srgb" else t
+    if encoding != "srgb":
+        return t
+    # In bands of rows: the curve's temporaries are four copies of what it is given.
+    encoded = torch.empty_like(t)
+    for top in range(0, t.shape[-2], _ENCODE_BAND_ROWS):
+        encoded[..., top:top + _ENCODE_BAND_ROWS, :] = linear_to_srgb(t[..., top:top + _ENCODE_BAND_ROWS, :])
+    return encoded
+
+
+#: Rows of a map ``_encode`` puts through the sRGB curve at a time.
+_ENCODE_BAND_ROWS = 512
 
 
 #: Shortest median length of a stored normal map's vectors that ``_decode`` renormalises.

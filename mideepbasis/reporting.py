@@ -160,28 +160,37 @@ class ReportSheet:
         return np.asarray(sheet, dtype=np.float32) / 255.0
 
 
+def report_panel(image: torch.Tensor) -> torch.Tensor:
+    """(C, H, W) as a sheet's panel is made from it: area-averaged (in linear light) to twice
+    ``REPORT_TILE`` where larger, before the sRGB encoding (which took 1.4 s of a 2048 px capture's
+    report at full size); unchanged where not larger. Applying it twice changes nothing."""
+    from .resampling import downsample
+
+    image = image.detach().cpu()
+    return downsample(image, 2 * REPORT_TILE) if image.shape[-1] > 2 * REPORT_TILE else image
+
+
 def report_sheet(result, rerender: torch.Tensor, error: torch.Tensor, rerender_rmse: float) -> ReportSheet:
     """The capture's sheet (photo, maps, re-rendering, error, estimated light, refinement curve,
     timings) with an empty environment panel, titled: ``ReportSheet.with_environment`` fills it.
 
     The sheet is composed with Pillow, not matplotlib: importing and laying out a matplotlib
     figure took 2.8 s of a 4-s save (issue 14)."""
-    from .resampling import downsample, downsample_maps
+    from .resampling import downsample
 
-    # The panels are REPORT_TILE pixels wide: larger images are area-averaged (in linear light) to
-    # twice that before their sRGB encoding, which took 1.4 s of a 2048 px capture's report.
     panel_limit = 2 * REPORT_TILE
-
-    def small(image: torch.Tensor) -> torch.Tensor:
-        image = image.detach().cpu()
-        return downsample(image, panel_limit) if image.shape[-1] > panel_limit else image
+    small = report_panel
 
     def srgb(image):
         return linear_to_srgb(small(image).permute(1, 2, 0).numpy().clip(0, 1))
 
-    maps = result.material.to_tensor()
-    if maps.shape[-1] > panel_limit:
-        maps = downsample_maps(maps[None], panel_limit)[0]
+    material = result.material
+    if material.width > panel_limit:  # map by map: a 4096 px stack of all ten channels is 0.7 GB
+        small_maps = torch.cat([downsample(m, panel_limit) for m in (material.normal, material.diffuse,
+                                                                      material.roughness, material.specular)])
+        maps = torch.cat([geometry.unit_vectors(small_maps[constants.NORMAL], dim=0), small_maps[constants.REFLECTANCE]])
+    else:
+        maps = material.to_tensor()
     tiles = map_tiles(maps)
     panels = [("photo", srgb(result.photo)), ("normal", tiles[0]), ("diffuse", tiles[1]), ("roughness", tiles[2]),
               ("specular", tiles[3]), ("re-rendering", srgb(rerender)),

@@ -8,7 +8,9 @@ environment prefiltered for split-sum lighting (``assets/viewer/studio_prefilter
 height H = 1 / tan(fov / 2); the flash starts where the capture found it and has the capture's
 intensity (pi H^2). In flash mode every pixel is the per-pixel flash render of ``render_flash``
 with ``views`` at the camera, clipped and sRGB-encoded (checked in headless Chromium by
-``tests/test_viewer.py``).
+``tests/test_viewer.py``). Where the folder has ``height.png``, the page embeds it too, as 8-bit
+grey, and its "height map" checkbox shows those grey levels in place of the shading (the status
+line gives the black and white of ``height.json``).
 
 ``headless_readback`` and ``screenshot`` drive a headless Chromium (Debian's ``chromium``), when
 there is one, for tests and for people who want a picture of the viewer.
@@ -56,8 +58,33 @@ def viewer_data(folder: Path, light: tuple[float, float, float], fov: float) -> 
             for name in VIEWER_MAPS}
     height = constants.camera_height(fov)
     return {"maps": maps, "camera": [0.0, 0.0, height], "light": [float(v) for v in light],
-            "intensity": math.pi * height**2, "extent": 1.0, "fov": fov,
+            "intensity": math.pi * height**2, "extent": 1.0, "fov": fov, "height": viewer_height(folder),
             "environment": json.loads(_asset("studio_prefiltered.json"))}
+
+
+def viewer_height(folder: Path) -> dict | None:
+    """The folder's height map as the viewer shows it: ``map``, ``height.png`` as an 8-bit grey PNG
+    (data URI; ``_viewer_png``'s size), and ``black`` and ``white``, its range [patch half-widths]
+    from ``height.json`` (None where that is missing); None without ``height.png``."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    folder = Path(folder)
+    if not (folder / "height.png").is_file():
+        return None
+    with Image.open(folder / "height.png") as image:
+        wide = image.mode.startswith("I")  # 16-bit grey, as export.write_height writes it
+        values = np.asarray(image if wide else image.convert("L"), dtype=np.float64) / (65535.0 if wide else 255.0)
+    if values.shape[1] > MAX_VIEWER_SIZE:
+        size = (MAX_VIEWER_SIZE, round(values.shape[0] * MAX_VIEWER_SIZE / values.shape[1]))
+        values = np.asarray(Image.fromarray(values.astype(np.float32), mode="F").resize(size, Image.Resampling.BOX))
+    buffer = BytesIO()
+    Image.fromarray(np.rint(values.clip(0, 1) * 255).astype(np.uint8), mode="L").save(buffer, format="PNG")
+    record = folder / "height.json"
+    limits = json.loads(record.read_text()) if record.is_file() else {}
+    return {"map": "data:image/png;base64," + base64.b64encode(buffer.getvalue()).decode(),
+            "black": limits.get("png_black"), "white": limits.get("png_white")}
 
 
 #: Largest map side the viewer embeds [pixels]; larger maps are box-filtered down for it.
@@ -87,9 +114,19 @@ def _viewer_png(path: Path) -> bytes:
 def viewer_section(folder: Path, light: tuple[float, float, float], fov: float, size: int) -> str:
     """The HTML of the viewer: canvas (``size`` pixels, one per map texel), controls, data and code."""
     data = viewer_data(folder, light, fov)
+    from PIL import Image
+
+    with Image.open(Path(folder) / "normal.png") as normal:
+        width = normal.width
+    # Said where the maps are larger than the canvas: the viewer then shows a box-filtered copy.
+    smaller = (f'\n<p class="mdb-viewer-note">The viewer shows the maps box-filtered to {size} px; '
+               f'the map files are {width} px.</p>' if width > size else "")
+    # The height map's checkbox, where there is a height map to show.
+    height = ('\n&nbsp;|&nbsp;\n<label><input type="checkbox" name="height"> height map</label>'
+              if data["height"] else "")
     return f"""<section id="mdb-viewer">
 <h2>Relight</h2>
-<p>Drag on the sample to move the flash over it, scroll to move it nearer or farther.</p>
+<p>Drag on the sample to move the flash over it, scroll to move it nearer or farther.</p>{smaller}
 <canvas width="{size}" height="{size}" style="width:{max(size, 512)}px;height:{max(size, 512)}px;image-rendering:pixelated;touch-action:none;cursor:crosshair"></canvas>
 <div class="mdb-viewer-controls">
 <label><input type="radio" name="light" value="flash" checked> flash</label>
@@ -97,7 +134,7 @@ def viewer_section(folder: Path, light: tuple[float, float, float], fov: float, 
 &nbsp;|&nbsp;
 <label><input type="checkbox" name="normal" checked> normal map</label>
 <label><input type="checkbox" name="diffuse" checked> diffuse lobe</label>
-<label><input type="checkbox" name="specular" checked> specular lobe</label>
+<label><input type="checkbox" name="specular" checked> specular lobe</label>{height}
 </div>
 <p class="mdb-viewer-status">starting WebGL...</p>
 <script type="application/json" id="mdb-viewer-data">{_script_json(data)}</script>
@@ -149,15 +186,18 @@ def _chromium(arguments: list[str], timeout: float, flags: tuple[str, ...] = ())
 
 
 def headless_readback(report: Path, light: tuple[float, float, float] | None = None, mode: str = "flash",
-                      normal: bool = True, diffuse: bool = True, specular: bool = True,
+                      normal: bool = True, diffuse: bool = True, specular: bool = True, height: bool = False,
                       timeout: float = 120.0) -> tuple[np.ndarray, float]:
-    """Open ``report`` in headless Chromium with the viewer's test hook and read its canvas back.
+    """Open ``report`` in headless Chromium with the viewer's test hook and read its canvas back
+    (``height``: the height map shown instead of the shading).
 
     Returns:
         (the canvas, (H, W, 3) uint8 with row 0 at the top; milliseconds from the script's start
         to its first frame).
     """
     fragment = f"viewer-test&mode={mode}&normal={int(normal)}&diffuse={int(diffuse)}&specular={int(specular)}"
+    if height:
+        fragment += "&height=1"
     if light is not None:
         fragment += "&light=" + ",".join(f"{v:.9g}" for v in light)
     url = Path(report).resolve().as_uri() + "#" + fragment

@@ -9,7 +9,9 @@ empty scene, puts a perspective camera and a point light at the capture's flash 
 (``TX, TY, H`` [patch half-widths], H = 1 / tan(fov / 2), the lens shifted so the camera frames
 the 2 x 2 sample exactly, as ``mideepbasis render --light flash`` does), renders it with Cycles on
 the CPU into a linear EXR, and with ``--nodes`` writes what the imported material's shader
-reads: each image's colour space and the Principled BSDF inputs that are linked.
+reads: each image's colour space, the Principled BSDF inputs that are linked, and the
+displacement (the USD's, from ``height.png``), which Blender renders as it imports it: on the
+sample's one quad, its four corners moved by the heights there.
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ def imported(folder: Path, kind: str) -> None:
 
 
 def shader_links() -> dict:
-    """The imported material's image colour spaces and the Principled BSDF's linked inputs."""
+    """The imported material's image colour spaces, the Principled BSDF's linked inputs and the
+    displacement: its method, the Displacement node's midlevel and scale, the image it reads (or None)."""
     materials = [m for m in bpy.data.materials if m.use_nodes and m.users]
     if not materials:
         raise SystemExit("no material was imported")
@@ -40,9 +43,23 @@ def shader_links() -> dict:
               if node.type == "TEX_IMAGE" and node.image is not None}
     principled = next(node for node in nodes if node.type == "BSDF_PRINCIPLED")
     linked = sorted(socket.name for socket in principled.inputs if socket.is_linked)
+    output = next(node for node in nodes if node.type == "OUTPUT_MATERIAL")
+    displacement = None
+    if output.inputs["Displacement"].is_linked:
+        node = output.inputs["Displacement"].links[0].from_node
+        upstream, sources = [node], []
+        while upstream:  # the images the displacement reads, through any nodes between
+            for socket in upstream.pop().inputs:
+                for link in socket.links:
+                    upstream.append(link.from_node)
+                    if link.from_node.type == "TEX_IMAGE" and link.from_node.image is not None:
+                        sources.append(link.from_node.image.name)
+        displacement = {"method": materials[0].displacement_method, "node": node.type, "images": sorted(sources),
+                        **{key: float(node.inputs[name].default_value) for key, name in
+                           (("midlevel", "Midlevel"), ("scale", "Scale")) if name in node.inputs}}
     return {"images": images, "principled_linked": linked,
             "ior": float(principled.inputs["IOR"].default_value),
-            "normal_map": any(node.type == "NORMAL_MAP" for node in nodes)}
+            "normal_map": any(node.type == "NORMAL_MAP" for node in nodes), "displacement": displacement}
 
 
 def flash_scene(offset: tuple[float, float], fov: float, resolution: int, samples: int) -> None:

@@ -92,12 +92,20 @@ def test_blender_renders_the_export_as_mideepbasis_does(captured, tmp_path, kind
     assert {"Base Color", "Metallic", "Roughness", "Normal"} <= set(nodes["principled_linked"]) and nodes["normal_map"]
     if kind == "gltf":
         assert nodes["images"]["specular_color.png"] == "sRGB" and "Specular Tint" in nodes["principled_linked"]
+        assert nodes["displacement"] is None  # glTF has no displacement
     else:  # USD's only input for a grey dielectric F0: its index of refraction
         from mideepbasis.export import dielectric_f0
         from mideepbasis.interchange import ior_of_f0
         from mideepbasis.material import Material
 
         assert nodes["ior"] == pytest.approx(ior_of_f0(dielectric_f0(Material.load(folder))), abs=1e-3)
+        # The displacement as Blender reads it: height.png (data) from its black to its white, zero height at
+        # the midlevel. Blender displaces the quad's four corners by it; the tolerance below holds with that.
+        height = json.loads((folder / "height.json").read_text())
+        span = height["png_white"] - height["png_black"]
+        assert nodes["images"]["height.png"] == "Non-Color" and nodes["displacement"]["images"] == ["height.png"]
+        assert nodes["displacement"]["scale"] == pytest.approx(span, rel=1e-4)
+        assert nodes["displacement"]["midlevel"] == pytest.approx(-height["png_black"] / span, rel=1e-4)
     assert relative_rmse(image, reference_render(folder, offset)) <= TOLERANCE[kind]
 
 

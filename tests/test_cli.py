@@ -278,3 +278,25 @@ def test_an_advanced_option_parses_though_the_brief_help_only_names_it():
     from mideepbasis.configs import config_from_arguments
 
     assert config_from_arguments(CaptureConfig, args).search.grid == 9
+
+
+def _png_header_only(path, width: int, height: int) -> None:
+    """A PNG whose header says width x height (8-bit RGB), its pixel data cut short: what a
+    reader sees of a huge photo before it decodes a pixel."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(b"\0" * 1024)) + chunk(b"IEND", b""))
+
+
+def test_a_16k_photo_at_native_resolution_is_refused_in_one_line_naming_the_limit(tmp_path, capsys):
+    huge = tmp_path / "huge.png"
+    _png_header_only(huge, 16384, 16384)
+    assert run("capture", huge, "-o", tmp_path / "out", "--resolution", "native") == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "16384x16384" in err and f"limit of {constants.MAX_IMAGE_PIXELS} pixels" in err, err
+    assert not (tmp_path / "out").exists()

@@ -448,9 +448,11 @@ def test_failed_write_keeps_existing_file(tmp_path, monkeypatch, suffix, bit_dep
     assert [p.name for p in tmp_path.iterdir()] == [target.name]
 
 
-def test_background_writes_finish_at_the_end_of_the_block_and_read_back_the_same(tmp_path):
+@pytest.mark.parametrize("most_bytes", [imageio.BACKGROUND_BYTES, 1])
+def test_background_writes_finish_at_the_end_of_the_block_and_read_back_the_same(tmp_path, most_bytes):
+    # most_bytes 1: every image is larger than half the budget, so each is written by the caller.
     images = {f"img{i}.png": smooth_image(seed=i) for i in range(4)}
-    with imageio.background_writes():
+    with imageio.background_writes(most_bytes=most_bytes):
         for name, data in images.items():
             write_image(tmp_path / name, data)
             data[:] = 0.0  # the caller may reuse its buffer at once: the write took a copy

@@ -2,7 +2,7 @@
 
 JPEG, PNG (8/16-bit), HEIC or EXR; EXIF orientation applied; sRGB decoded to linear; the centre
 square cropped; resampled to the working resolution (256 by default, or the photo's own up to
-2048 with ``resolution="native"``). The field of view comes from the EXIF 35 mm-equivalent focal
+4096 with ``resolution="native"``). The field of view comes from the EXIF 35 mm-equivalent focal
 length when present, else the one given, else 45 degrees.
 """
 
@@ -23,8 +23,9 @@ from ..imageio import image_size, read_focal_length_35mm, read_image
 #: Smallest photo side accepted [pixels].
 MIN_PHOTO_SIZE = 64
 
-#: Largest working resolution of ``resolution="native"`` [pixels].
-MAX_NATIVE_RESOLUTION = 2048
+#: Largest working resolution, and the one of ``resolution="native"`` for larger photos [pixels]: a
+#: 4096 px capture peaks at 2.5 GiB of memory (benchmarks/README.md), within an 8 GB laptop's means.
+MAX_NATIVE_RESOLUTION = 4096
 
 #: Diagonal of a 35 mm film frame [mm]: EXIF 35 mm-equivalent focal lengths match its field of view.
 FILM_DIAGONAL_MM = math.hypot(36.0, 24.0)
@@ -65,7 +66,7 @@ def load_photo(path: str | Path, fov: float | None = None, resolution: int | str
         raise InputError(f"'{path}': {what} is {box[2]}x{box[3]} pixels, smaller than the {MIN_PHOTO_SIZE} pixels "
                          "a capture needs")
     needed = 2 * working_resolution(side, resolution)
-    reduce = max(1, side // needed) if resolution != "native" else 1
+    reduce = max(1, side // needed)
     image = read_image(path, decode_srgb=decoding == "srgb", reduce=reduce)
     if decoding == "gamma2.2" and path.suffix.lower() != ".exr":
         image = image**2.2
@@ -87,6 +88,9 @@ def load_photo(path: str | Path, fov: float | None = None, resolution: int | str
     else:
         used_fov, source = constants.DEFAULT_FOV_DEG, "default"
         notes.append(f"no EXIF focal length: field of view {used_fov:g} deg assumed (set it with --fov)")
+    if resolution == "native" and side > MAX_NATIVE_RESOLUTION:
+        notes.append(f"native resolution: the photo's {side} px square is worked at the most, "
+                     f"{MAX_NATIVE_RESOLUTION} px")
     if crop is not None:
         notes.append(f"cropped to {box[2]}x{box[3]} pixels at ({box[0]}, {box[1]}) of the {full_width}x{full_height} photo")
     if width != height:
@@ -123,8 +127,9 @@ def parse_resolution(text: str) -> int | str:
     if text == "native":
         return text
     value = int(text)
-    if value < MIN_PHOTO_SIZE:
-        raise ValueError(f"the resolution must be native or at least {MIN_PHOTO_SIZE} pixels, got {value}")
+    if not MIN_PHOTO_SIZE <= value <= MAX_NATIVE_RESOLUTION:
+        raise ValueError(f"the resolution must be native or {MIN_PHOTO_SIZE} to {MAX_NATIVE_RESOLUTION} pixels, "
+                         f"got {value}")
     return value
 
 

@@ -43,7 +43,7 @@ class CaptureConfig:
 
     resolution: int | str = field(default=constants.DEFAULT_RESOLUTION,
                                   metadata={"parse": parse_resolution, "metavar": "N|native"})
-    """Working resolution [pixels], or ``native`` (the photo's own, up to 2048)."""
+    """Working resolution [pixels], or ``native`` (the photo's own, up to 4096)."""
 
     network_resolution: int | None = None
     """Largest resolution the network runs at [pixels]; a larger photo is predicted on a

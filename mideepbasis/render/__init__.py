@@ -246,6 +246,53 @@ def render_flash(maps, lights, *, fov: float | None = None, convention: str | No
     return bridge.render_flash(maps, lights, intensity, convention, views=views, extent=extent)
 
 
+#: Side of the square tiles ``render_flash_tiled`` renders a large image in [pixels].
+RENDER_TILE = 1024
+
+
+def render_flash_tiled(maps, light, *, fov: float | None = None, convention: str | None = None,
+                       extent: float = 1.0, tile: int = RENDER_TILE):
+    """``render_flash`` of one material under one co-located flash, without gradients, in square
+    tiles of ``tile`` pixels where the image is a square of whole tiles: the render's own memory
+    (1.6 GB at 4096 px at once) stays that of one tile. Exact: the flash and the camera are moved
+    by minus the tile's centre and the tile framed as a sample of its own (``extent`` scaled), and
+    a pixel's radiance depends only on its maps and its offsets to the light and camera.
+
+    Args:
+        maps: (1, 10, N, N) or (1, 10, H, W); light: (3,) [patch half-widths].
+
+    Returns:
+        linear radiance, (3, H, W).
+    """
+    import torch
+
+    height, width = maps.shape[-2:]
+    light = torch.as_tensor(light, dtype=torch.float32).view(1, 1, 3)
+    with torch.no_grad():
+        if height != width or height <= tile or height % tile:
+            return render_flash(maps, light, fov=fov, convention=convention, extent=extent)[0, 0]
+        count = height // tile
+        image = torch.empty(3, height, width)
+        tile_extent = extent / count
+        for row in range(count):
+            for col in range(count):
+                centre = torch.tensor([extent * (-1 + (2 * col + 1) / count), extent * (1 - (2 * row + 1) / count), 0.0])
+                rows, cols = slice(row * tile, (row + 1) * tile), slice(col * tile, (col + 1) * tile)
+                image[:, rows, cols] = render_flash(maps[..., rows, cols], light - centre, fov=fov,
+                                                    convention=convention, extent=tile_extent)[0, 0]
+    return image
+
+
+def release_memory() -> None:
+    """Free what the Mitsuba renderer holds of the last render (``bridge.release_memory``);
+    nothing to do for the torch backend or before Mitsuba is loaded."""
+    import sys
+
+    bridge = sys.modules.get(f"{__name__}.bridge")
+    if bridge is not None:
+        bridge.release_memory()
+
+
 def flash_l1(maps, photo, lights, *, fov: float | None = None, convention: str | None = None,
              intensity: float | None = None, backend: str | None = None, extent: float = 1.0):
     """Mean L1 between a photo and the clipped flash render of one material under each of K

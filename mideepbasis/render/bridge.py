@@ -43,6 +43,14 @@ def _mean_l1_drjit(normal, diffuse, roughness, specular, photo, lights, intensit
     return renderer.mean_l1(dr.unravel(mi.Point3f, lights.array), photo, mi.Float(intensity.array), extent)
 
 
+def release_memory() -> None:
+    """Let go of the last render's textures and of drjit's cached allocations (which it keeps for
+    the next kernel): after a large one-off render, such as a 4096 px capture's re-rendering."""
+    for renderer in _renderers.values():
+        renderer.release_maps()
+    dr.flush_malloc_cache()
+
+
 def _to_texture(maps: torch.Tensor) -> torch.Tensor:
     """(B, C, H, W) -> (B*H, W, C), contiguous."""
     batch, channels, height, width = maps.shape

@@ -58,3 +58,31 @@ def test_a_field_of_view_given_wins_over_the_exif_one(tmp_path):
     assert (fov, source) == (23.0, "argument")
     _, fov, source, _ = load_photo(path, resolution=64)
     assert source == "exif" and fov == pytest.approx(field_of_view_from_focal(28, 96, 80))
+
+
+def test_native_resolution_stops_at_its_most_and_says_so(tmp_path, monkeypatch):
+    from mideepbasis.capturing import photo as photo_module
+
+    rng = np.random.default_rng(0)
+    write_image(tmp_path / "big.png", rng.uniform(0.2, 0.8, (300, 300, 3)).astype(np.float32))
+    monkeypatch.setattr(photo_module, "MAX_NATIVE_RESOLUTION", 128)
+    reads = []
+    real_read = photo_module.read_image
+    monkeypatch.setattr(photo_module, "read_image", lambda *a, **k: reads.append(k["reduce"]) or real_read(*a, **k))
+    photo, _, _, notes = load_photo(tmp_path / "big.png", fov=45.0, resolution="native")
+    assert photo.shape == (3, 128, 128)
+    assert any("worked at the most, 128 px" in note for note in notes)
+    assert reads == [1]  # 300 // (2 x 128): decoded whole, at least twice the working size
+    photo, _, _, notes = load_photo(tmp_path / "big.png", fov=45.0, resolution=64)
+    assert reads[-1] == 2 and not any("most" in note for note in notes)
+    small, _, _, notes = load_photo(photo_file(tmp_path, "small.png", size=(100, 100)), resolution="native")
+    assert small.shape == (3, 100, 100) and not any("most" in note for note in notes)
+
+
+def test_a_working_resolution_above_the_most_is_refused():
+    from mideepbasis.capturing.photo import MAX_NATIVE_RESOLUTION, parse_resolution
+
+    assert MAX_NATIVE_RESOLUTION == 4096
+    assert parse_resolution("4096") == 4096 and parse_resolution("native") == "native"
+    with pytest.raises(ValueError, match="64 to 4096 pixels, got 8192"):
+        parse_resolution("8192")

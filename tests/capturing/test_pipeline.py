@@ -61,6 +61,24 @@ def test_capture_outputs_load_back_render_and_validate(tmp_path, tiny_checkpoint
         assert (out / image.uri).is_file(), image.uri
     assert len(gltf.binary_blob() or gltf.decode_data_uri(gltf.buffers[0].uri)) == gltf.buffers[0].byteLength
 
+    # The MaterialX and USD files displace by height.png over the range height.json records.
+    import MaterialX as mx
+
+    height = json.loads((out / "height.json").read_text())
+    span = height["png_white"] - height["png_black"]
+    document = mx.createDocument()
+    mx.readFromXmlFile(document, str(out / "material.mtlx"))
+    assert document.getNodes("displacement")[0].getInputValue("scale") == pytest.approx(span, rel=1e-5)
+    assert "@height.png@" in (out / "material.usda").read_text()
+    try:
+        from pxr import Usd, UsdShade
+    except ImportError:  # usd-core is optional (the ``usd`` extra)
+        return
+    stage = Usd.Stage.Open(str(out / "material.usda"))
+    texture = UsdShade.Shader(stage.GetPrimAtPath("/sample/captured_material/height_texture"))
+    assert texture.GetInput("scale").Get()[0] == pytest.approx(span, rel=1e-5)
+    assert texture.GetInput("bias").Get()[0] == pytest.approx(height["png_black"], rel=1e-5)
+
 
 def test_a_preview_that_fails_to_trace_fails_the_writing_and_leaves_nothing(tmp_path, tiny_checkpoint, monkeypatch):
     """The tracer thread hands the previews over one by one: a failure in the second one (the

@@ -148,3 +148,20 @@ def test_mean_l1_in_the_kernel_is_the_mean_of_the_reference_render(convention, f
         torch.testing.assert_close(errors.double(), expected, rtol=L1_RTOL, atol=0.0)
     with pytest.raises(ValueError, match="photo must have shape"):
         bridge.flash_l1(maps, photo[..., :-1], lights, intensity, convention)
+
+
+def test_a_render_in_tiles_is_the_render_in_one_piece():
+    """The tiles move the flash by minus their centre and frame themselves as samples of their own:
+    the same radiance as the whole image at once, to float32 rounding."""
+    from mideepbasis.render import render_flash, render_flash_tiled
+
+    generator = torch.Generator().manual_seed(3)
+    maps = torch.rand(1, 10, 96, 96, generator=generator)
+    tilt = maps[:, 0:3] * 0.6 - 0.3
+    tilt[:, 2] = 1.0
+    maps[:, 0:3] = tilt / tilt.norm(dim=1, keepdim=True)
+    light = torch.tensor([0.4, -0.3, 2.2])
+    whole = render_flash(maps, light.view(1, 1, 3), fov=35.0)[0, 0]
+    tiled = render_flash_tiled(maps, light, fov=35.0, tile=32)
+    assert torch.allclose(tiled, whole, rtol=1e-5, atol=1e-6)
+    assert torch.equal(render_flash_tiled(maps, light, fov=35.0, tile=40), whole)  # 96 is no whole number of 40s

@@ -9,6 +9,7 @@ uniform sampler2D normalMap;     // (n + 1) / 2, OpenGL convention
 uniform sampler2D diffuseMap;    // sRGB-encoded
 uniform sampler2D roughnessMap;  // linear
 uniform sampler2D specularMap;   // sRGB-encoded
+uniform sampler2D heightMap;     // height.png's range as [0, 1], 8-bit grey
 uniform vec2 resolution;         // canvas size [pixels]
 uniform float extent;            // half-width of the framed sample [patch half-widths]
 uniform vec3 cameraPosition;     // [patch half-widths]
@@ -18,6 +19,7 @@ uniform int useNormalMap;        // 0: flat normals
 uniform int useDiffuse;          // 0: no diffuse lobe
 uniform int useSpecular;         // 0: no specular lobe
 uniform int environmentMode;     // 1: the prefiltered studio instead of the flash
+uniform int showHeight;          // 1: the height map's grey levels instead of the shading
 uniform sampler2D environmentMap;  // prefiltered radiance, equirectangular, LEVELS rows of bands
 uniform vec3 irradiance[9];      // the environment's irradiance as order-2 spherical harmonics
 uniform float environmentLevels;
@@ -101,6 +103,10 @@ vec3 environmentShading(vec3 n, vec3 wi, vec3 diffuse, float roughness, vec3 spe
 void main() {
     // Pixel (row i, column j), row 0 at the top (+y): gl_FragCoord counts rows from the bottom.
     ivec2 texel = ivec2(int(gl_FragCoord.x), int(resolution.y) - 1 - int(gl_FragCoord.y));
+    if (showHeight == 1) {  // the PNG's grey levels as they are stored
+        fragColor = vec4(vec3(texelFetch(heightMap, texel, 0).r), 1.0);
+        return;
+    }
     vec3 p = vec3(-1.0 + 2.0 * gl_FragCoord.x / resolution.x, -1.0 + 2.0 * gl_FragCoord.y / resolution.y, 0.0) * extent;
     vec3 n = useNormalMap == 1 ? normalize(texelFetch(normalMap, texel, 0).rgb * 2.0 - 1.0) : vec3(0.0, 0.0, 1.0);
     vec3 diffuse = srgbToLinear(texelFetch(diffuseMap, texel, 0).rgb);

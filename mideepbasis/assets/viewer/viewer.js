@@ -19,7 +19,7 @@
     return;
   }
 
-  // --- the test hook: #viewer-test&light=x,y,z&mode=flash|env&normal=0|1&diffuse=0|1&specular=0|1
+  // --- the test hook: #viewer-test&light=x,y,z&mode=flash|env&normal=0|1&diffuse=0|1&specular=0|1&height=0|1
   const hash = new URLSearchParams(window.location.hash.replace(/^#/, "").replace(/^viewer-test&?/, ""));
   const testing = window.location.hash.indexOf("viewer-test") >= 0;
 
@@ -29,6 +29,7 @@
     normalMap: hash.get("normal") !== "0",
     diffuse: hash.get("diffuse") !== "0",
     specular: hash.get("specular") !== "0",
+    height: Boolean(data.height) && hash.get("height") === "1",  // the height map instead of the shading
   };
   if (hash.get("light")) state.light = hash.get("light").split(",").map(Number);
 
@@ -93,10 +94,17 @@
     gl.uniform1i(uniform("useDiffuse"), state.diffuse ? 1 : 0);
     gl.uniform1i(uniform("useSpecular"), state.specular ? 1 : 0);
     gl.uniform1i(uniform("environmentMode"), state.environment ? 1 : 0);
+    gl.uniform1i(uniform("showHeight"), state.height ? 1 : 0);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     const [x, y, z] = state.light;
-    status.textContent = state.environment ? "studio environment (prefiltered)"
-      : `flash at (${x.toFixed(2)}, ${y.toFixed(2)}, ${z.toFixed(2)}) [patch half-widths]`;
+    status.textContent = state.height ? heightStatus()
+      : state.environment ? "studio environment (prefiltered)"
+        : `flash at (${x.toFixed(2)}, ${y.toFixed(2)}, ${z.toFixed(2)}) [patch half-widths]`;
+  }
+  function heightStatus() {
+    const {black, white} = data.height;
+    if (typeof black !== "number" || typeof white !== "number") return "height map";
+    return `height map: black ${black.toPrecision(3)}, white ${white.toPrecision(3)} [patch half-widths]`;
   }
 
   function controls() {
@@ -108,6 +116,7 @@
     bind("normal", "normalMap");
     bind("diffuse", "diffuse");
     bind("specular", "specular");
+    if (data.height) bind("height", "height");
     for (const input of root.querySelectorAll("[name=light]")) {
       input.checked = (input.value === "env") === state.environment;
       input.addEventListener("change", () => { state.environment = input.value === "env"; draw(); });
@@ -132,18 +141,21 @@
   }
 
   const names = ["normal", "diffuse", "roughness", "specular"];
-  let pending = names.length;
-  names.forEach((name, unit) => {
+  const sources = names.map((name) => [name + "Map", data.maps[name]]);
+  if (data.height) sources.push(["heightMap", data.height.map]);  // 8-bit grey
+  let pending = sources.length;
+  // The environment takes the unit after the maps'; without a height map, heightMap samples unit 0 unseen.
+  sources.forEach(([name, source], unit) => {
     const image = new Image();
     image.onload = () => {
-      mapTexture(unit, name + "Map", image);
+      mapTexture(unit, name, image);
       if (--pending === 0) ready();
     };
-    image.src = data.maps[name];
+    image.src = source;
   });
 
   function ready() {
-    environmentTexture(names.length);
+    environmentTexture(sources.length);
     controls();
     draw();
     gl.finish();
