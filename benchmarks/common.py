@@ -73,6 +73,22 @@ def write_report(path: Path, name: str, report: dict) -> Path:
     return path
 
 
+def write_section(path: Path, key: str, name: str, report: dict) -> Path:
+    """Write ``report`` (as ``write_report`` does: name, date, command line, machine) as the entry
+    ``key`` of the JSON file ``path``, keeping its other entries: a benchmark that belongs beside
+    another's figures, in the same file."""
+    path = Path(path)
+    document = json.loads(path.read_text()) if path.is_file() else {"benchmark": path.stem}
+    document[key] = {"benchmark": name, "date": datetime.datetime.now().isoformat(timespec="seconds"),
+                     "command": shlex.join(sys.argv), "machine": machine(), **report}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(".json.tmp")
+    temporary.write_text(json.dumps(document, indent=2) + "\n")
+    temporary.replace(path)
+    print(f"wrote {key!r} of {path}")
+    return path
+
+
 def save_figure(figure, path: Path, dpi: int = 90) -> Path:
     """Save a matplotlib figure as a PNG atomically (temporary file, then rename) and close it."""
     import matplotlib.pyplot as plt

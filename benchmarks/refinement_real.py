@@ -6,7 +6,7 @@
 For each variant of ``RefineConfig`` it runs ``evaluate``'s real protocol (``evaluation.real``) on
 the calibrated real scenes (every photo in turn as the input) and on the validation scenes (photo
 00 as the input), and reports the re-rendering RMSE of the refined capture beside the unrefined
-one. A lever is good only where both sets agree. Writes results/refinement_real.json.
+one. A lever is good only where both sets agree. Writes the entry ``real`` of results/refinement.json.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from common import RESULTS, SHARED_TEST, write_report
+from common import RESULTS, SHARED_TEST, write_section
 
 from mideepbasis.capturing import CaptureConfig
 from mideepbasis.evaluation import EvaluationConfig
@@ -46,7 +46,7 @@ def main() -> None:
     parser.add_argument("--real", type=Path, default=SHARED_TEST.parent / "real-calibrated")
     parser.add_argument("--validation", type=Path, default=Path("runs/phone_scenes"))
     parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated names of VARIANTS")
-    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "refinement_real.json")
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "refinement.json")
     args = parser.parse_args()
     default = CaptureConfig().refine
     rows = {}
@@ -67,7 +67,7 @@ def main() -> None:
         print(f"{name:14s} real {real['refined']:.4f} (unrefined {real['unrefined']:.4f}, least squares "
               f"{real['refined_least_squares']:.4f})   validation {validation['refined']:.4f} "
               f"(unrefined {validation['unrefined']:.4f})", flush=True)
-    write_report(args.output, "refinement_real", {"model": args.model or "shipped", "rows": rows})
+    write_section(args.output, "real", "refinement_real", {"model": args.model or "shipped", "rows": rows})
 
 
 if __name__ == "__main__":

@@ -73,8 +73,10 @@ def test_evaluation_is_seeded_and_skips_a_corrupt_material(evaluation_dataset, t
             summaries.append(run_evaluation(config, progress=False))
     a, b = summaries
     assert a["n_materials"] == 3 and a["skipped"] == 1
+    # Equal but for float rounding: the refinement's gradients are summed by drjit's threads, in an
+    # order that the machine's load decides.
     for key in ("maps_rmse", "render_rmse", "render_flip", "render_ssim"):
-        assert a[key] == b[key], key
+        assert a[key] == pytest.approx(b[key], rel=1e-5, abs=1e-7), key
     assert set(a["rows"]) == {"model (no refinement)", "model + refinement (3 steps, normals kept)", "trivial"}
     assert a["render_rmse_torch_reference"] == pytest.approx(a["render_rmse"], rel=1e-3)
     for name in ("summary.json", "per_material.csv", "table.md", "bars.png", "gallery.png"):
