@@ -62,6 +62,10 @@ class CaptureConfig:
     refine: RefineConfig = RefineConfig()
     """The refinement of the global bases (``refine.steps`` 0: none)."""
 
+    detail: bool = True
+    """Above the network's resolution, give the maps the photo's finer detail where their own
+    variation follows the photo's (``capturing.detail``); False: the network's answer upsampled."""
+
     tileable: bool = False
     """Make the captured maps wrap around their edges without a seam (``tiling.make_tileable``)."""
 
@@ -160,14 +164,23 @@ class Prediction:
     size: tuple[int, int]
     """The photo's (height, width) [pixels]."""
 
+    detail_from: torch.Tensor | None = None
+    """(B, 3, H, W) the photo whose detail above the network's resolution the maps are given
+    (``detail.add_detail``); None: the network's answer upsampled."""
+
     @functools.cached_property
     def maps(self) -> torch.Tensor:
         """(B, 10, H, W) the maps at the photo's size."""
-        return self.output.maps_at(*self.size)
+        maps = self.output.maps_at(*self.size)
+        if self.detail_from is None or maps.shape[-2] <= self.output.maps.shape[-2]:
+            return maps
+        from .detail import add_detail
+
+        return add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps)
 
     def compose(self, global_bases: torch.Tensor) -> Prediction:
         """This prediction with other (say, refined) global bases."""
-        return Prediction(self.output.compose(global_bases), self.size)
+        return Prediction(self.output.compose(global_bases), self.size, self.detail_from)
 
 
 def predict_small(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
@@ -294,8 +307,9 @@ class Capturer:
     def predict(self, photo: Photo, offset: tuple[float, float] | torch.Tensor) -> Prediction:
         """The network's prediction for the photo taken with the flash at ``offset`` [patch half-widths]."""
         light = flash_position(offset, photo.fov)
-        return predict_small(self.model, photo.pixels[None], light[None], photo.fov, self.config.network_resolution,
-                             self.config.symmetries)
+        prediction = predict_small(self.model, photo.pixels[None], light[None], photo.fov,
+                                   self.config.network_resolution, self.config.symmetries)
+        return replace(prediction, detail_from=photo.pixels[None]) if self.config.detail else prediction
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""

@@ -14,7 +14,8 @@ clipped sRGB-encoded images.
 
 Modules:
 
-- ``metrics``: the metrics, each a plain function (map RMSE, re-rendering RMSE, SSIM, FLIP, LPIPS);
+- ``metrics``: the metrics, each a plain function (map RMSE, re-rendering RMSE, SSIM, FLIP, LPIPS,
+  the maps' detail above the network's band);
 - ``protocol``: the photos, offsets, lights and views, and the evaluation materials;
 - ``run``: ``EvaluationConfig`` and ``run_evaluation`` (the predictions and their scores);
 - ``environment``: path-traced comparisons under environment light (``evaluate --environment``);
@@ -23,8 +24,8 @@ Modules:
 
 """
 
-from .metrics import (LPIPS, Scores, flip, light_error_deg, map_rmse, rerender, rerender_rmse, score, ssim, ssim_map,
-                      summary_scores, trivial_baseline)
+from .metrics import (DETAIL_BAND, LPIPS, Scores, detail_ratio, flip, high_band_energy, light_error_deg, map_rmse,
+                      rerender, rerender_rmse, score, ssim, ssim_map, summary_scores, trivial_baseline)
 from .protocol import (PAPER_DEEPBASIS, RERENDER_COUNT, ROUGHNESS_GROUPS, EvaluationSet, evaluation_offsets,
                        flash_photos, load_evaluation_materials, load_evaluation_set, random_lights_and_views,
                        resize_maps)
@@ -32,8 +33,8 @@ from .run import EvaluationConfig, lighting_accuracy, run_evaluation
 
 __all__ = [
     "EvaluationConfig", "run_evaluation", "lighting_accuracy",
-    "LPIPS", "Scores", "flip", "light_error_deg", "map_rmse", "rerender", "rerender_rmse", "score", "ssim", "ssim_map",
-    "summary_scores", "trivial_baseline",
+    "DETAIL_BAND", "LPIPS", "Scores", "detail_ratio", "flip", "high_band_energy", "light_error_deg", "map_rmse",
+    "rerender", "rerender_rmse", "score", "ssim", "ssim_map", "summary_scores", "trivial_baseline",
     "PAPER_DEEPBASIS", "RERENDER_COUNT", "ROUGHNESS_GROUPS", "EvaluationSet", "evaluation_offsets", "flash_photos",
     "load_evaluation_materials", "load_evaluation_set", "random_lights_and_views", "resize_maps",
 ]

@@ -60,6 +60,53 @@ def unit_normal_map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
     return {name: rmse[channels].mean().item() for name, channels in constants.MAP_SLICES.items()}
 
 
+#: The band of ``detail_ratio``: the resolution [pixels] the shipped network answers at.
+DETAIL_BAND = 128
+
+
+def high_band_energy(maps: torch.Tensor, band: int = DETAIL_BAND) -> dict[str, torch.Tensor]:
+    """Per-material energy of each map of (B, 10, H, W) above the ``band``-pixel band, (B,) each:
+    the mean over pixels of the squared residual ``map - upsample_bilinear(downsample(map, band))``
+    (area average, then bilinear back to H x W), summed over the map's channels.
+
+    The filter is linear and applied to the maps as they are (unit normals, not renormalised), so
+    the normal's figure is the same in the stored encoding but for a factor 1/4. A map at or
+    below ``band`` pixels has none. Note the residual of a map that is itself a bilinear
+    upsampling of a ``band``-pixel one is small but not 0: area-averaging a bilinear upsampling by
+    an even factor blurs by [1/8, 3/4, 1/8] along each axis (away from the edges), so 1/8 of the
+    band-size map's discrete Laplacian remains.
+    """
+    from ..resampling import downsample, upsample_bilinear
+
+    height, width = maps.shape[-2:]
+    result = {}
+    for name, channels in constants.MAP_SLICES.items():
+        values = maps[:, channels]
+        if min(height, width) <= band:
+            result[name] = torch.zeros(maps.shape[0], dtype=maps.dtype, device=maps.device)
+            continue
+        residual = values - upsample_bilinear(downsample(values, band), height, width)
+        result[name] = (residual**2).mean(dim=(2, 3)).sum(dim=1)
+    return result
+
+
+def detail_ratio(predicted: torch.Tensor, truth: torch.Tensor, band: int = DETAIL_BAND) -> dict[str, torch.Tensor]:
+    """Per-material detail of each predicted map against the truth, (B,) each: the predicted
+    map's energy above the ``band``-pixel band over the truth's (``high_band_energy``; energy,
+    not amplitude: twice the truth's fine detail gives 4). 1 is right, 0 a map as blurred as a
+    ``band``-pixel answer, above 1 detail the truth lacks; NaN where the truth has no energy there.
+
+    Args:
+        predicted, truth: (B, 10, H, W) maps of one size, normals unit vectors.
+    """
+    if predicted.shape[-2:] != truth.shape[-2:]:
+        raise ValueError(f"predicted maps {tuple(predicted.shape[-2:])} and truth {tuple(truth.shape[-2:])} differ in size")
+    found, expected = high_band_energy(predicted, band), high_band_energy(truth, band)
+    return {name: torch.where(expected[name] > 0, found[name] / expected[name].clamp_min(1e-30),
+                              torch.full_like(expected[name], float("nan")))
+            for name in constants.MAP_SLICES}
+
+
 def flat_normals(maps: torch.Tensor) -> torch.Tensor:
     """A copy of maps (B, 10, H, W) with flat normals (+z): the baseline of the normal's RMSE."""
     flat = maps.clone()

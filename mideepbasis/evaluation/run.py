@@ -81,6 +81,10 @@ class EvaluationConfig:
     """Largest resolution the network runs at [pixels] (None: the model's training resolution; 0: no
     limit), as in ``capture``."""
 
+    detail: bool = True
+    """Give the maps the photo's detail above the network's resolution, as ``capture`` does
+    (``CaptureConfig.detail``)."""
+
     symmetries: int | None = field(default=None, metadata={"parse": symmetry_count, "metavar": "1|2|4|8"})
     """Turns and mirrorings of each photo the model's prediction is averaged over (1, 2, 4 or 8;
     None: capture's default, ``CaptureConfig.symmetries``)."""
@@ -147,7 +151,8 @@ def _capture_config(symmetries: int | None = None, **fields):
 
 def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine: RefineConfig,
                  progress: bool, label: str, network_resolution: int | None = None,
-                 symmetries: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+                 symmetries: int | None = None, detail: bool = True
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine.steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
     import time
@@ -158,7 +163,7 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
 
     convention = model.config.convention
     capturer = Capturer(model, _capture_config(fov=fov, network_resolution=network_resolution, symmetries=symmetries,
-                                               refine=refine))
+                                               refine=refine, detail=detail))
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
@@ -232,7 +237,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     refine = shown_refinement(config) if config.baselines else config.refine
     steps = refine.steps
     plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, refine, progress, "model",
-                                           config.network_resolution, config.symmetries)
+                                           config.network_resolution, config.symmetries, config.detail)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
     kept = "" if refine.normals else ", normals kept"
@@ -256,7 +261,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
             start = time.perf_counter()
             predictions["direct (no bases)"], _, _ = _predict_all(
                 direct, truth, offsets, config.fov, "known", RefineConfig(steps=0), progress, "direct",
-                network_resolution=config.network_resolution, symmetries=config.symmetries)
+                network_resolution=config.network_resolution, symmetries=config.symmetries, detail=config.detail)
             rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
             per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention,
                                                       lpips, stored=stored)

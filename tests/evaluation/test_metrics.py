@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 import torch
 
-from mideepbasis.evaluation import (LPIPS, Scores, flip, light_error_deg, map_rmse, rerender, rerender_rmse, score,
-                                    ssim, ssim_map, summary_scores, trivial_baseline)
+from mideepbasis import constants
+from mideepbasis.evaluation import (LPIPS, Scores, detail_ratio, flip, high_band_energy, light_error_deg, map_rmse,
+                                    rerender, rerender_rmse, score, ssim, ssim_map, summary_scores, trivial_baseline)
+from mideepbasis.resampling import downsample, upsample_bilinear
 
 #: (rtol, atol) per comparison, Kornia style: float64 closed forms are tight; renders are float32 on
 #: the Mitsuba side and sRGB-encoded (slope up to 12.92); FLIP's library works in float32.
@@ -114,6 +116,68 @@ def test_map_rmse_of_known_differences(name, channels, delta, fraction, expected
     for other, values in errors.items():
         assert values.shape == (2,)
         assert_close(values, [expected if other == name else 0.0, 0.0], "float64")
+
+
+# --- high_band_energy and detail_ratio ------------------------------------------------------------------
+
+def _one_pixel_checkerboard(size, amplitudes, means):
+    """(1, 10, size, size): per channel a constant plus a +-amplitude checkerboard of 1-pixel squares.
+    Area-averaging 2 x 2 blocks leaves the constant, which bilinear upsampling keeps (edges too):
+    the residual above size / 2 is the checkerboard exactly, its energy amplitude^2 a channel."""
+    rows, columns = torch.meshgrid(torch.arange(size), torch.arange(size), indexing="ij")
+    sign = 1.0 - 2.0 * ((rows + columns) % 2).double()
+    return (torch.tensor(means, dtype=torch.float64).view(1, 10, 1, 1)
+            + torch.tensor(amplitudes, dtype=torch.float64).view(1, 10, 1, 1) * sign)
+
+
+AMPLITUDES = (0.1, 0.2, 0.0, 0.05, 0.05, 0.1, 0.3, 0.02, 0.0, 0.01)
+MEANS = (0.0, 0.0, 1.0, 0.4, 0.5, 0.3, 0.5, 0.04, 0.04, 0.04)
+
+
+def test_high_band_energy_of_a_checkerboard_by_hand():
+    maps = _one_pixel_checkerboard(16, AMPLITUDES, MEANS)
+    energy = high_band_energy(maps, band=8)
+    expected = {name: sum(AMPLITUDES[c] ** 2 for c in range(10)[channels])
+                for name, channels in constants.MAP_SLICES.items()}
+    for name, value in energy.items():
+        assert value.shape == (1,)
+        assert_close(value, [expected[name]], "float64")
+    # At or below the band there is nothing above it.
+    assert all(float(v[0]) == 0.0 for v in high_band_energy(maps, band=16).values())
+
+
+def test_detail_ratio_is_one_zero_and_four_in_energy_on_a_checkerboard():
+    truth = _one_pixel_checkerboard(16, AMPLITUDES, MEANS)
+    blurred = _one_pixel_checkerboard(16, (0.0,) * 10, MEANS)  # the band-limited part alone
+    doubled = _one_pixel_checkerboard(16, tuple(2 * a for a in AMPLITUDES), MEANS)
+    for predicted, expected in ((truth, 1.0), (blurred, 0.0), (doubled, 4.0)):
+        for value in detail_ratio(predicted, truth, band=8).values():
+            assert_close(value, [expected], "float64")
+
+
+def test_detail_ratio_of_a_textured_material_and_its_blur():
+    # Smooth random fields (4 x 4 knots) plus strong pixel noise, 64 px, against a 16-px band: the
+    # band-limited copy keeps 1/8 of its own Laplacian above the band (``high_band_energy``).
+    generator = torch.Generator().manual_seed(3)
+    smooth = torch.nn.functional.interpolate(torch.rand(2, 10, 4, 4, generator=generator, dtype=torch.float64),
+                                             size=(64, 64), mode="bicubic", align_corners=False)
+    truth = smooth + 0.2 * torch.rand(2, 10, 64, 64, generator=generator, dtype=torch.float64)
+    blurred = upsample_bilinear(downsample(truth, 16), 64, 64)
+    doubled = 2 * truth - blurred  # the energy above the band doubled in amplitude
+    for value in detail_ratio(truth, truth, band=16).values():
+        assert_close(value, [1.0, 1.0], "float64")
+    for value in detail_ratio(blurred, truth, band=16).values():
+        assert (value >= 0).all() and (value < 0.05).all()
+    for value in detail_ratio(doubled, truth, band=16).values():
+        assert ((value > 3.8) & (value < 4.0)).all()
+
+
+def test_detail_ratio_is_nan_without_true_detail_and_refuses_other_sizes():
+    truth = _one_pixel_checkerboard(16, (0.1,) * 6 + (0.0,) + (0.1,) * 3, MEANS)  # a constant roughness
+    ratio = detail_ratio(truth, truth, band=8)
+    assert math.isnan(float(ratio["roughness"][0])) and float(ratio["diffuse"][0]) == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        detail_ratio(truth[..., :8, :8], truth, band=4)
 
 
 # --- trivial_baseline -----------------------------------------------------------------------------------

@@ -1,0 +1,300 @@
+"""Maps as sharp as the photo: captures at 1024 px against the truth's fine detail.
+
+    .venv/bin/python benchmarks/detail.py [--model CKPT] [--materials 12] [--flat 4] [--size 1024]
+    .venv/bin/python benchmarks/detail.py --materials 1 --flat 1 --size 256 --low 128 --lights 2 -o /tmp/detail.json --sheet /tmp/detail.png
+
+Held-out procedural materials (seeds 5e8 on, one family after another) are generated at
+``--size`` and photographed as ``evaluate`` photographs them (``flash_photos``: 8-bit sRGB, a
+seeded hand-held flash at 45 deg field of view); the capture is told the flash's offset, so no
+lighting search adds noise, and refines as ``capture`` does (``--refine-steps`` to change). Each
+material is captured three ways:
+
+- ``upsampled 256``: the photo area-averaged to ``--low`` px and captured, the maps upsampled
+  bilinearly to ``--size`` (normals renormalised): today's answer made bigger;
+- ``1024, no detail``: captured at full size with ``CaptureConfig.detail`` False;
+- ``1024, detail``: captured at full size with ``CaptureConfig.detail`` True.
+
+Against the truth at full size: map RMSE (``map_rmse``, the stored encoding), re-rendering RMSE
+under ``--lights`` of ``evaluate``'s seeded lights and views (clipped sRGB, ``rerender``), and the
+detail: each map's energy above the 128-px band over the truth's (``high_band_energy``: energy,
+so twice the amplitude reads 4), pooled over a group as the sum of the energies over the sum of the
+truth's (near-constant true maps would make a mean of ratios blow up); per material in the JSON.
+1.0 is right, near 0 the blur of a 128-px answer, above 1 invented detail.
+
+Two groups, reported apart: ``relief`` (the families' materials as generated) and ``flat
+textured`` (stone of veined or grained variants and wood, the same generator's materials with
+their normals set flat: strong albedo texture, no relief, where a detail step must not turn
+colour into relief). A flat normal has no energy to divide by: beside the ratios, each row's
+fine tilt [deg] (the normals' energy above the band as an RMS angle) shows relief made up.
+
+Writes the figures as the entry ``detail`` of results/model_quality.json and the contact sheet (``--sheet``; ``--no-sheet`` skips it): for two
+relief materials and one flat textured one, the centre half of the sample (512 px at 1024): the
+photo, the true, upsampled and detailed diffuse, the true, upsampled and detailed normal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import mideepbasis  # noqa: F401
+import numpy as np
+import torch
+from common import RESULTS, write_section
+
+from mideepbasis import constants, geometry
+from mideepbasis.capturing import CaptureConfig, Capturer
+from mideepbasis.data.procedural import FAMILIES, generate
+from mideepbasis.evaluation import (DETAIL_BAND, evaluation_offsets, flash_photos, high_band_energy, map_rmse,
+                                    random_lights_and_views, rerender)
+from mideepbasis.model.checkpoint import load_model
+from mideepbasis.resampling import downsample, upsample_bilinear
+
+#: First seed of the relief materials (training never draws seeds this small: ``search_prior``).
+HELD_OUT_SEED = 5 * 10**8
+
+#: First seed searched for the flat textured materials.
+FLAT_SEED = HELD_OUT_SEED + 10**6
+
+#: The flat textured materials, in turn: a family and the variants (their names' starts) taken.
+FLAT_KINDS = (("stone", ("marble",)), ("wood", ()), ("stone", ("granite", "terrazzo")))
+
+#: Materials of each group shown on the contact sheet.
+SHEET_MATERIALS = {"relief": 2, "flat textured": 1}
+
+#: The maps' names, in ``map_rmse``'s order.
+MAPS = tuple(constants.MAP_SLICES)
+
+
+def row_labels(size: int, low: int) -> tuple[str, str, str]:
+    """The three ways of capturing: upsampled from ``low`` px, full size without and with detail."""
+    return f"upsampled {low}", f"{size}, no detail", f"{size}, detail"
+
+
+def materials(relief: int, flat: int) -> list[dict]:
+    """The benchmark's materials: kind, family, seed (no maps: they are made one at a time)."""
+    families = sorted(FAMILIES)
+    chosen = [{"kind": "relief", "family": families[i % len(families)], "seed": HELD_OUT_SEED + i}
+              for i in range(relief)]
+    seed = FLAT_SEED
+    for index in range(flat):
+        family, variants = FLAT_KINDS[index % len(FLAT_KINDS)]
+        # The variant is the family's first draw, the same at every size: read it off a small copy.
+        while variants and not generate(seed, size=32, family=family).provenance["variant"].startswith(variants):
+            seed += 1
+        chosen.append({"kind": "flat textured", "family": family, "seed": seed})
+        seed += 1
+    return chosen
+
+
+def true_maps(material: dict, size: int) -> tuple[torch.Tensor, str]:
+    """(1, 10, size, size) the material's maps (normals flat for the flat textured), and its variant."""
+    generated = generate(material["seed"], size=size, family=material["family"])
+    maps = generated.to_tensor()[None]
+    if material["kind"] == "flat textured":
+        maps[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+    return maps, generated.provenance["variant"]
+
+
+def upsample_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
+    """(B, 10, h, w) bilinearly to (B, 10, size, size), the normals renormalised."""
+    if maps.shape[-1] == size:
+        return maps
+    big = upsample_bilinear(maps, size, size)
+    return torch.cat([geometry.unit_vectors(big[:, constants.NORMAL], dim=1), big[:, constants.REFLECTANCE]], dim=1)
+
+
+def centre_crop(image: torch.Tensor) -> np.ndarray:
+    """The centre half of a (C, H, W) tile as (H / 2, W / 2, 3) for the sheet."""
+    height, width = image.shape[-2:]
+    top, left = height // 4, width // 4
+    return image[:, top:top + height // 2, left:left + width // 2].permute(1, 2, 0).numpy().copy()
+
+
+def sheet_tiles(maps: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Diffuse (sRGB) and normal ((n + 1) / 2) crops of maps (1, 10, H, W)."""
+    from mideepbasis.imageio import linear_to_srgb
+
+    return (centre_crop(linear_to_srgb(maps[0, constants.DIFFUSE].clamp(0, 1))),
+            centre_crop((maps[0, constants.NORMAL] + 1) / 2))
+
+
+def write_sheet(path: Path, rows: list[tuple[str, list[tuple[str, np.ndarray]]]]) -> Path:
+    """Rows of titled tiles ((title, (H, W, 3) in [0, 1])), a label above each row, as a PNG (atomically)."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    tile = rows[0][1][0][1].shape[0]
+    band, gap = 22, 4
+    columns = max(len(tiles) for _, tiles in rows)
+    sheet = Image.new("RGB", (columns * (tile + gap) + gap, len(rows) * (tile + 2 * band + gap) + gap), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    font = ImageFont.load_default(size=max(9, min(16, tile // 12)))
+    for r, (label, tiles) in enumerate(rows):
+        top = gap + r * (tile + 2 * band + gap)
+        draw.text((gap + 2, top + 3), label, fill=(0, 0, 0), font=font)
+        for c, (title, image) in enumerate(tiles):
+            left = gap + c * (tile + gap)
+            draw.text((left + 2, top + band + 3), title, fill=(0, 0, 0), font=font)
+            pixels = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+            sheet.paste(Image.fromarray(pixels), (left, top + 2 * band))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.stem}.tmp.png")
+    sheet.save(temporary)
+    temporary.replace(path)
+    print(f"wrote {path}")
+    return path
+
+
+def finite(value: float) -> float | None:
+    """A number for the JSON: None for NaN (a truth without detail)."""
+    return None if math.isnan(value) else value
+
+
+def fine_tilt_deg(normal_energy: float) -> float:
+    """The normals' RMS tilt above the band [deg] from their energy there (unit normals: for small
+    tilts the x and y residuals are the tilt in radians, z's is of second order)."""
+    return math.degrees(math.sqrt(max(normal_energy, 0.0)))
+
+
+def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
+    """A group: its size, the truth's fine tilt, and per row the mean map RMSE and re-rendering
+    RMSE, the pooled detail ratio, the normals' fine tilt (the group's mean energy as a tilt,
+    ``fine_tilt_deg``: what a flat material's ratio cannot show), the median seconds a capture
+    (the first material's include the warm-up)."""
+    truth_energy = {name: sum(r["truth_energy"][name] for r in records) for name in MAPS}
+    summary = {}
+    for label in labels:
+        rows = [r["rows"][label] for r in records]
+        energy = {name: sum(row["energy"][name] for row in rows) for name in MAPS}
+        summary[label] = {
+            "maps_rmse": {name: float(np.mean([row["maps_rmse"][name] for row in rows])) for name in MAPS},
+            "render_rmse": float(np.mean([row["render_rmse"] for row in rows])),
+            "detail": {name: finite(energy[name] / truth_energy[name]) if truth_energy[name] > 0 else None
+                       for name in MAPS},
+            "fine_tilt_deg": fine_tilt_deg(energy["normal"] / len(records)),
+            "seconds_median": float(np.median([row["seconds"] for row in rows]))}
+    return {"materials": len(records), "truth_fine_tilt_deg": fine_tilt_deg(truth_energy["normal"] / len(records)),
+            "rows": summary}
+
+
+def number(value: float | None) -> str:
+    """A detail ratio for the printed tables ("-": no true detail)."""
+    return "   -  " if value is None else f"{value:6.3f}"
+
+
+def print_table(group: str, summary: dict) -> None:
+    print(f"\n{group} ({summary['materials']} materials)")
+    print(f"{'':22s} {'normal':>7s} {'diffuse':>7s} {'rough.':>7s} {'spec.':>7s} {'render':>7s}   "
+          f"detail n / d / r / s          fine tilt [deg]  s/capture")
+    print(f"{'truth':22s} {'':67s} {summary['truth_fine_tilt_deg']:6.2f}")
+    for label, row in summary["rows"].items():
+        rmse = row["maps_rmse"]
+        print(f"{label:22s} {rmse['normal']:7.4f} {rmse['diffuse']:7.4f} {rmse['roughness']:7.4f} "
+              f"{rmse['specular']:7.4f} {row['render_rmse']:7.4f}   "
+              + " ".join(number(row["detail"][name]) for name in MAPS)
+              + f"   {row['fine_tilt_deg']:6.2f}    {row['seconds_median']:9.2f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
+    parser.add_argument("--materials", type=int, default=12, help="relief materials, one family after another")
+    parser.add_argument("--flat", type=int, default=4, help="flat textured materials (normals set flat)")
+    parser.add_argument("--size", type=int, default=1024, help="the materials' and the full captures' size [pixels]")
+    parser.add_argument("--low", type=int, default=constants.DEFAULT_RESOLUTION,
+                        help="the upsampled row's capture resolution [pixels]")
+    parser.add_argument("--band", type=int, default=DETAIL_BAND, help="the detail measure's band [pixels]")
+    parser.add_argument("--lights", type=int, default=6, help="lights and views of the re-rendering error")
+    parser.add_argument("--refine-steps", type=int, default=None, help="the refinement's steps (default: capture's)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the flash offsets and the lights and views")
+    parser.add_argument("-o", "--output", type=Path, default=RESULTS / "model_quality.json",
+                        help="JSON file whose entry detail gets the figures")
+    parser.add_argument("--sheet", type=Path, default=RESULTS / "detail_crops.png")
+    parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
+    args = parser.parse_args()
+
+    model = load_model(args.model)
+    fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
+    base = CaptureConfig(fov=fov)
+    if args.refine_steps is not None:
+        base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
+    labels = row_labels(args.size, args.low)
+    capturers = {labels[0]: Capturer(model, replace(base, resolution=args.low, detail=False)),
+                 labels[1]: Capturer(model, replace(base, resolution=args.size, detail=False)),
+                 labels[2]: Capturer(model, replace(base, resolution=args.size, detail=True))}
+    chosen = materials(args.materials, args.flat)
+    offsets = evaluation_offsets(len(chosen), args.seed, fov)
+    lights, views = random_lights_and_views(args.lights, args.seed)
+    sheet_left = dict(SHEET_MATERIALS) if not args.no_sheet else {}
+    sheet_rows, records = [], []
+    started = time.perf_counter()
+    for index, material in enumerate(chosen):
+        truth, variant = true_maps(material, args.size)
+        offset = (float(offsets[index, 0]), float(offsets[index, 1]))
+        photos, _ = flash_photos(truth, offsets[index:index + 1], fov, convention, extent)
+        truth_renders = rerender(truth, lights, views, convention)
+        truth_energy = high_band_energy(truth, args.band)
+        record = {**material, "variant": variant, "offset": list(offset),
+                  "truth_energy": {name: float(value[0]) for name, value in truth_energy.items()}, "rows": {}}
+        tiles = None
+        if sheet_left.get(material["kind"], 0) > 0:
+            from mideepbasis.imageio import linear_to_srgb
+
+            diffuse, normal = sheet_tiles(truth)
+            tiles = {"photo": centre_crop(linear_to_srgb(photos[0].clamp(0, 1))), "diffuse: truth": diffuse,
+                     "normal: truth": normal}
+        for label, capturer in capturers.items():
+            pixels = photos[0] if label != labels[0] else downsample(photos[0], args.low)
+            start = time.perf_counter()
+            result = capturer.with_config(light=offset).capture(pixels)
+            seconds = time.perf_counter() - start
+            maps = upsample_maps(result.material.to_tensor()[None], args.size)
+            del result
+            with torch.no_grad():
+                render_rmse = float(((rerender(maps, lights, views, convention) - truth_renders) ** 2).mean().sqrt())
+                energy = high_band_energy(maps, args.band)
+            rmse = map_rmse(maps, truth)
+            record["rows"][label] = {
+                "maps_rmse": {name: float(value[0]) for name, value in rmse.items()}, "render_rmse": render_rmse,
+                "energy": {name: float(value[0]) for name, value in energy.items()},
+                "detail": {name: finite(float(energy[name][0] / truth_energy[name][0]))
+                           if float(truth_energy[name][0]) > 0 else None for name in MAPS},
+                "seconds": seconds}
+            if tiles is not None and label != labels[1]:
+                diffuse, normal = sheet_tiles(maps)
+                tiles[f"diffuse: {label}"], tiles[f"normal: {label}"] = diffuse, normal
+            del maps
+        if tiles is not None:
+            sheet_left[material["kind"]] -= 1
+            order = ["photo", "diffuse: truth", f"diffuse: {labels[0]}", f"diffuse: {labels[2]}", "normal: truth",
+                     f"normal: {labels[0]}", f"normal: {labels[2]}"]
+            sheet_rows.append((f"{material['family']} {variant} ({material['kind']}), seed {material['seed']}",
+                               [(title, tiles[title]) for title in order]))
+        records.append(record)
+        del truth, photos, truth_renders
+        print(f"{index + 1}/{len(chosen)} {material['kind']:13s} {material['family']:12s} {variant:24s} "
+              "render " + " / ".join(f"{record['rows'][label]['render_rmse']:.4f}" for label in labels)
+              + "; detail of the diffuse " + " / ".join(number(record["rows"][label]["detail"]["diffuse"])
+                                                         for label in labels)
+              + f" ({time.perf_counter() - started:.0f} s)", flush=True)
+
+    groups = {}
+    for group in ("relief", "flat textured"):
+        members = [r for r in records if r["kind"] == group]
+        if members:
+            groups[group] = summarise(members, labels)
+            print_table(group, groups[group])
+    report = {"model": args.model or "shipped", "size": args.size, "low": args.low, "band": args.band,
+              "lights": args.lights, "seed": args.seed, "fov_deg": fov,
+              "refine_steps": base.refine.steps, "groups": groups, "per_material": records}
+    write_section(args.output, "detail", "detail", report)
+    if sheet_rows:
+        write_sheet(args.sheet, sheet_rows)
+
+
+if __name__ == "__main__":
+    main()

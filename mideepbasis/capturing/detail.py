@@ -1,0 +1,137 @@
+"""Detail above the network's resolution, from the photo (``CaptureConfig.detail``).
+
+The network sees the photo at its own resolution (128 px for the shipped model) and its blending
+weights and deviations are upsampled to the working resolution: a 2048 px map holds the detail
+of a 128 px one. Here each map gets the photo's finer detail in proportion to how its own
+variation follows the photo's just below the network's resolution:
+
+1. At the network's resolution, the photo's contrast band ``(I - blur(I)) / blur(I)`` and each
+   map's band ``m - blur(m)`` (Gaussian blur of ``LOW_SIGMA`` network pixels) give, in windows of
+   ``WINDOW`` network pixels around each pixel, the least-squares slope ``a`` of the map's band on
+   the photo's (a guided filter's gain, regularised by ``EPS``, then averaged over the window).
+2. At the working resolution, the photo's contrast above the network's band, ``(I - L(I)) / L(I)``
+   with ``L`` the photo area-averaged to the network's size and upsampled, times the upsampled
+   gain, is added to the map.
+
+The diffuse channels follow the photo's channel of their colour, the normal and roughness its
+luminance; the specular is left as it is (``GAIN_OF_CHANNEL``).
+Where the network's map does not follow the photo (a flat normal map on veined marble, a constant
+roughness) the gain is about zero and nothing is added: relief comes only where the network read
+the photo's shading as relief. The network's answer below its resolution is kept: what is added
+is the photo's band above it. Normals are renormalised, the other maps clipped to [0, 1].
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from .. import constants
+from ..geometry import unit_vectors
+from ..resampling import downsample, exact_in_bands, gaussian_blur, upsample_bilinear, upsampled_rows
+
+#: Radius of the windows the gains are fitted in, and averaged over [network pixels].
+WINDOW = 2
+
+#: Regularisation of the gains [contrast^2]: photo contrast of a few percent or less (noise, JPEG)
+#: carries little gain.
+EPS = 1e-3
+
+#: Blur that separates the band just below the network's resolution, where the gains are fitted
+#: [network pixels].
+LOW_SIGMA = 1.0
+
+#: Darkest photo level a contrast is taken against [linear].
+DARKEST = 1e-3
+
+#: For each of the ten map channels, the guide it follows: 0 - 2 the photo's red, green and blue,
+#: 3 its luminance (the mean of the three).
+GUIDE_OF_CHANNEL = (3, 3, 3, 0, 1, 2, 3, 3, 3, 3)
+
+#: Scale of each map channel's gain: the specular gets none. There the photo's fine contrast is
+#: the highlight's noise and glints: on held-out procedural materials (``benchmarks/detail.py``) it
+#: gave the specular 22 times the truth's fine energy and a larger error.
+GAIN_OF_CHANNEL = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0)
+
+#: Output pixels per band of rows at the working resolution (the memory of one band's buffers).
+BAND_PIXELS = 1 << 20
+
+
+def _guides(photo: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) -> (B, 4, H, W): red, green, blue and luminance."""
+    return torch.cat([photo, photo.mean(dim=1, keepdim=True)], dim=1)
+
+
+def _box(image: torch.Tensor, radius: int) -> torch.Tensor:
+    """Mean over (2 radius + 1)^2 windows, the edges replicated."""
+    padded = F.pad(image, (radius,) * 4, mode="replicate")
+    return F.avg_pool2d(padded, 2 * radius + 1, stride=1)
+
+
+def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = WINDOW, eps: float = EPS,
+                 sigma: float = LOW_SIGMA) -> torch.Tensor:
+    """The gains of each map channel on the photo's contrast at the network's resolution.
+
+    Args:
+        low_maps: (B, 10, h, w) the network's maps; low_photo: (B, 3, h, w) linear.
+
+    Returns:
+        (B, 10, h, w) gains [map units per unit of contrast], ``GAIN_OF_CHANNEL`` applied.
+    """
+    guides = _guides(low_photo.float())
+    base = gaussian_blur(guides, sigma, padding="replicate")
+    contrast = ((guides - base) / base.clamp(min=DARKEST))[:, list(GUIDE_OF_CHANNEL)]
+    band = low_maps.float() - gaussian_blur(low_maps.float(), sigma, padding="replicate")
+    mean_guide, mean_band = _box(contrast, window), _box(band, window)
+    covariance = _box(contrast * band, window) - mean_guide * mean_band
+    variance = (_box(contrast * contrast, window) - mean_guide**2).clamp(min=0.0)
+    strength = torch.tensor(GAIN_OF_CHANNEL, dtype=torch.float32).view(1, -1, 1, 1)
+    return _box(covariance / (variance + eps), window) * strength
+
+
+def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor) -> torch.Tensor:
+    """``maps`` with the photo's detail above the resolution of ``low_maps`` (module docstring).
+
+    Args:
+        maps: (B, 10, H, W) the maps at the working resolution (changed in place and returned).
+        photo: (B, 3, H, W) linear, the photo they were captured from.
+        low_maps: (B, 10, h, w) the network's maps at its own resolution (h < H).
+
+    Returns:
+        (B, 10, H, W).
+    """
+    height, width = maps.shape[-2:]
+    low_size = tuple(low_maps.shape[-2:])
+    if low_size[0] >= height:
+        return maps
+    with torch.no_grad():
+        low_photo = downsample(photo.float(), low_size)
+        gains = detail_gains(low_maps, low_photo)
+        low_guides = _guides(low_photo)
+        factor = height // low_size[0]
+        banded = (exact_in_bands(low_size[0], height) and low_size[1] * factor == width)
+        rows = max(factor, BAND_PIXELS // width // factor * factor) if banded else height
+
+        def up(value: torch.Tensor, start: int, stop: int) -> torch.Tensor:
+            return (upsampled_rows(value, height, width, start, stop) if banded
+                    else upsample_bilinear(value, height, width)[..., start:stop, :])
+
+        # The detail, and what it holds below the network's resolution, which is taken out again:
+        # the network's answer there stays as it is.
+        below = maps.new_empty(maps.shape[0], maps.shape[1], *low_size)
+        for start in range(0, height, rows):
+            stop = min(height, start + rows)
+            smooth = up(low_guides, start, stop)
+            contrast = (_guides(photo[..., start:stop, :].float()) - smooth) / smooth.clamp(min=DARKEST)
+            added = up(gains, start, stop) * contrast[:, list(GUIDE_OF_CHANNEL)]
+            maps[..., start:stop, :] += added
+            below[..., start // factor:-(-stop // factor), :] = downsample(
+                added, (-(-stop // factor) - start // factor, low_size[1]))
+        for start in range(0, height, rows):
+            stop = min(height, start + rows)
+            band = maps[..., start:stop, :]
+            band -= up(below, start, stop)
+            band[:, constants.NORMAL] = unit_vectors(torch.cat([band[:, 0:2], band[:, 2:3].clamp(min=1e-3)], dim=1),
+                                                     dim=1)
+            band[:, constants.REFLECTANCE] = band[:, constants.REFLECTANCE].clamp(0.0, 1.0)
+    return maps

@@ -1,0 +1,98 @@
+"""The photo's detail above the network's resolution (``capturing.detail``): given to a map that
+follows the photo, not to one that does not, the low band kept, bands of rows as the whole."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from mideepbasis import constants
+from mideepbasis.capturing import detail
+from mideepbasis.resampling import downsample, gaussian_blur, upsample_bilinear
+
+#: What the tests ask: high-band energy of the detailed diffuse against the truth's, and how much of
+#: the upsampled answer's error the detail removes.
+TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "flat_normal": 1e-3}
+
+SIZE, LOW = 256, 32
+
+
+def textured_scene(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A fine albedo texture (1, 3, SIZE, SIZE) and its photo under a smooth flash falloff."""
+    generator = torch.Generator().manual_seed(seed)
+    noise = torch.rand(1, 3, SIZE // 4, SIZE // 4, generator=generator)
+    albedo = 0.15 + 0.6 * F.interpolate(noise, size=(SIZE, SIZE), mode="bicubic", align_corners=False).clamp(0, 1)
+    y, x = torch.meshgrid(torch.linspace(-1, 1, SIZE), torch.linspace(-1, 1, SIZE), indexing="ij")
+    falloff = (1.0 / (1.0 + 0.5 * (x**2 + y**2)) ** 1.5).view(1, 1, SIZE, SIZE)
+    return albedo, albedo * falloff
+
+
+def upsampled_answer(albedo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The network's answer as capture has it: the truth at LOW px (flat normals, roughness 0.4,
+    specular 0.04), and that upsampled to SIZE."""
+    low = torch.zeros(1, 10, LOW, LOW)
+    low[:, 2] = 1.0
+    low[:, constants.DIFFUSE] = downsample(albedo, LOW)
+    low[:, constants.ROUGHNESS] = 0.4
+    low[:, constants.SPECULAR] = 0.04
+    return low, upsample_bilinear(low, SIZE, SIZE)
+
+
+def high_band(image: torch.Tensor) -> torch.Tensor:
+    return image - upsample_bilinear(downsample(image, LOW), SIZE, SIZE)
+
+
+def test_a_map_that_follows_the_photo_gets_its_detail_and_a_flat_one_none():
+    albedo, photo = textured_scene()
+    low, maps = upsampled_answer(albedo)
+    before = maps.clone()
+    detailed = detail.add_detail(maps, photo, low)
+    diffuse = detailed[:, constants.DIFFUSE]
+    ratio = float(high_band(diffuse).square().sum() / high_band(albedo).square().sum())
+    low_ratio, high_ratio = TOLERANCES["energy_ratio"]
+    assert low_ratio <= ratio <= high_ratio
+    error = lambda m: float((m - albedo).square().mean().sqrt())  # noqa: E731
+    assert error(diffuse) < TOLERANCES["error_left"] * error(before[:, constants.DIFFUSE])
+    # The network's flat normals and constant roughness and specular do not follow the photo: no
+    # relief is invented from the albedo's texture.
+    assert float((detailed[:, 0:2]).abs().max()) < TOLERANCES["flat_normal"]
+    assert torch.allclose(detailed[:, constants.ROUGHNESS], before[:, constants.ROUGHNESS], atol=1e-4)
+
+
+def test_the_network_answer_below_its_resolution_is_kept():
+    albedo, photo = textured_scene(1)
+    low, maps = upsampled_answer(albedo)
+    # The band below the network's: its pixels, blurred by one (what detail is fitted against).
+    low_band = lambda m: gaussian_blur(downsample(m, LOW), 1.0, padding="replicate")  # noqa: E731
+    before = low_band(maps.clone())
+    after = low_band(detail.add_detail(maps, photo, low))
+    change = float((after - before)[:, constants.DIFFUSE].abs().mean())
+    assert change < TOLERANCES["low_band"]
+
+
+def test_bands_of_rows_give_the_whole_image(monkeypatch):
+    albedo, photo = textured_scene(2)
+    low, maps = upsampled_answer(albedo)
+    whole = detail.add_detail(maps.clone(), photo, low)
+    monkeypatch.setattr(detail, "BAND_PIXELS", SIZE * 24)  # bands of 24 rows
+    banded = detail.add_detail(maps.clone(), photo, low)
+    assert torch.allclose(banded, whole, atol=1e-5)
+
+
+@pytest.mark.parametrize("size", [LOW, LOW // 2])
+def test_nothing_is_added_at_or_below_the_network_resolution(size):
+    albedo, photo = textured_scene(3)
+    low, _ = upsampled_answer(albedo)
+    maps = downsample(low, size).clone()
+    assert torch.equal(detail.add_detail(maps.clone(), downsample(photo, size), low), maps)
+
+
+def test_the_specular_gets_no_detail_even_where_it_follows_the_photo():
+    albedo, photo = textured_scene(4)
+    low, maps = upsampled_answer(albedo)
+    low[:, constants.SPECULAR] = low[:, constants.DIFFUSE] * 0.2  # a specular that follows the photo
+    maps = upsample_bilinear(low, SIZE, SIZE)
+    before = maps[:, constants.SPECULAR].clone()
+    after = detail.add_detail(maps, photo, low)[:, constants.SPECULAR]
+    assert torch.allclose(after, before.clamp(0, 1), atol=1e-6)
