@@ -123,8 +123,26 @@ def lighting_mark(lights: torch.Tensor, height: int, width: int, fov: float = co
 #: ``shading``: the photo divided by the flash's own falloff (a white Lambertian rendered under the
 #: same flash), log-compressed: what is left is albedo times relative shading, plus the highlight;
 #: ``highpass``: the log photo minus its Gaussian blur (sigma 1/64 of the width): local shading
-#: and texture, the flash's slow falloff removed.
-EXTRA_INPUTS = ("shading", "highpass")
+#: and texture, the flash's slow falloff removed; ``view``: the camera's geometry, which the lighting
+#: mark shows only through a clipped highlight: 2 cos - 1 and 2 cos^3 - 1 of each pixel's angle to
+#: the co-located flash and camera (the falloff's shape), and the field of view as a constant
+#: (``VIEW_FOV_RANGE`` to [-1, 1]); all three turn with the image, as the symmetries need.
+EXTRA_INPUTS = ("shading", "highpass", "view")
+
+#: Fields of view the ``view`` input's constant channel maps to -1 and 1 [deg].
+VIEW_FOV_RANGE = (20.0, 75.0)
+
+
+def view_channels(lights: torch.Tensor, height: int, width: int, fov: float = constants.DEFAULT_FOV_DEG,
+                  extent: float = 1.0) -> torch.Tensor:
+    """The ``view`` input channels (``EXTRA_INPUTS``) of flashes at ``lights`` (B, 3) [patch
+    half-widths], (B, 3, H, W) in [-1, 1]."""
+    points = geometry.pixel_points(height, width, device=lights.device, dtype=lights.dtype)[None] * extent
+    towards = lights.view(-1, 3, 1, 1) - points
+    cosine = (towards[:, 2:3] / geometry.vector_length(towards, dim=1, keepdim=True)).clamp(0.0, 1.0)
+    low, high = VIEW_FOV_RANGE
+    code = max(-1.0, min(1.0, 2.0 * (fov - low) / (high - low) - 1.0))
+    return torch.cat([2.0 * cosine - 1.0, torch.full_like(cosine, code), 2.0 * cosine**3 - 1.0], dim=1)
 
 #: Largest ratio of photo to falloff the ``shading`` channels represent (highlights saturate there).
 MAX_SHADING_RATIO = 4.0
@@ -141,11 +159,18 @@ def flash_falloff(lights: torch.Tensor, height: int, width: int, fov: float = co
     return _reference_render(white, lights, fov, convention, extent)[:, :1]
 
 
-def extra_input_channels(photo: torch.Tensor, names: tuple[str, ...], falloff: torch.Tensor | None = None) -> torch.Tensor:
+def extra_input_channels(photo: torch.Tensor, names: tuple[str, ...], falloff: torch.Tensor | None = None,
+                         view: torch.Tensor | None = None) -> torch.Tensor:
     """The optional input channels ``names`` (``EXTRA_INPUTS``) of photos (B, 3, H, W) in [0, 1], each in
-    [-1, 1], (B, 3 len(names), H, W). ``shading`` needs the flash's ``falloff`` (B, 1, H, W)."""
+    [-1, 1], (B, 3 len(names), H, W). ``shading`` needs the flash's ``falloff`` (B, 1, H, W),
+    ``view`` its ``view_channels`` (B, 3, H, W)."""
     channels = []
     for name in names:
+        if name == "view":
+            if view is None:
+                raise ValueError("the view input needs the view channels")
+            channels.append(view.to(photo))
+            continue
         if name == "shading":
             if falloff is None:
                 raise ValueError("the shading input needs the flash falloff")
@@ -207,7 +232,7 @@ def octave_relief_inputs(photo: torch.Tensor, lights: torch.Tensor, octaves: int
 
 
 def network_input(photo: torch.Tensor, mark: torch.Tensor, extra_inputs: tuple[str, ...] = (),
-                  falloff: torch.Tensor | None = None) -> torch.Tensor:
+                  falloff: torch.Tensor | None = None, view: torch.Tensor | None = None) -> torch.Tensor:
     """The network input: [photo, log-compressed photo, lighting mark] (9 channels), each in [-1, 1],
     then the ``extra_inputs`` channels (``extra_input_channels``).
 
@@ -216,6 +241,7 @@ def network_input(photo: torch.Tensor, mark: torch.Tensor, extra_inputs: tuple[s
         mark: (B, 3, H, W) lighting-mark image in [0, 1].
         extra_inputs: names of optional channels (the network's ``config.extra_inputs``).
         falloff: (B, 1, H, W) the flash's falloff (``flash_falloff``), for ``shading``.
+        view: (B, 3, H, W) ``view_channels``, for ``view``.
 
     Returns:
         (B, 9 + 3 len(extra_inputs), H, W).
@@ -224,7 +250,7 @@ def network_input(photo: torch.Tensor, mark: torch.Tensor, extra_inputs: tuple[s
     base = torch.cat([photo, log_compress(photo), mark], dim=1) * 2.0 - 1.0
     if not extra_inputs:
         return base
-    return torch.cat([base, extra_input_channels(photo, tuple(extra_inputs), falloff)], dim=1)
+    return torch.cat([base, extra_input_channels(photo, tuple(extra_inputs), falloff, view)], dim=1)
 
 
 def encode_inputs(photos: torch.Tensor, lights: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG,
@@ -236,4 +262,5 @@ def encode_inputs(photos: torch.Tensor, lights: torch.Tensor, fov: float = const
     height, width = photos.shape[-2:]
     mark = lighting_mark(lights, height, width, fov, convention, extent)
     falloff = flash_falloff(lights, height, width, fov, convention, extent) if "shading" in extra_inputs else None
-    return network_input(photos, mark, tuple(extra_inputs), falloff)
+    view = view_channels(lights.float(), height, width, fov, extent) if "view" in extra_inputs else None
+    return network_input(photos, mark, tuple(extra_inputs), falloff, view)

@@ -88,3 +88,25 @@ def test_relief_inputs_by_hand():
     torch.testing.assert_close(relief[0, 5:, row, col], 3 * (towards / towards.norm())[:2])
     # Under a centred flash the pixels left of the centre see the flash to their right (+x).
     assert (relief[1, 5, :, :8] > 0).all() and (relief[1, 5, :, 8:] < 0).all()
+
+
+def test_the_view_input_is_the_cosine_to_the_flash_and_the_field_of_view():
+    """Against hand geometry: the flash 2.4 above the point (0.5, -0.25), a pixel at distance d sees
+    it at cos = 2.4 / d; the constant channel codes the field of view within VIEW_FOV_RANGE."""
+    light = torch.tensor([[0.5, -0.25, 2.4]])
+    view = inputs.view_channels(light, 8, 8, fov=30.0)
+    points = geometry.pixel_points(8, 8)
+    distance = (light.view(3, 1, 1) - points).norm(dim=0)
+    cosine = 2.4 / distance
+    torch.testing.assert_close(view[0, 0], 2 * cosine - 1)
+    torch.testing.assert_close(view[0, 2], 2 * cosine**3 - 1)
+    low, high = inputs.VIEW_FOV_RANGE
+    assert float(view[0, 1].unique()) == pytest.approx(2 * (30.0 - low) / (high - low) - 1)
+    assert float(inputs.view_channels(light, 4, 4, fov=90.0)[0, 1].max()) == 1.0
+    # It turns with the image: the flash mirrored left-right gives the mirrored channels.
+    mirrored = inputs.view_channels(light * torch.tensor([-1.0, 1.0, 1.0]), 8, 8, fov=30.0)
+    torch.testing.assert_close(mirrored, view.flip(-1))
+    photos = torch.rand(1, 3, 8, 8)
+    encoded = inputs.encode_inputs(photos, light, 30.0, extra_inputs=("view",))
+    assert encoded.shape == (1, inputs.input_channels(("view",)), 8, 8)
+    torch.testing.assert_close(encoded[:, -3:], view)

@@ -96,7 +96,8 @@ def _predict(network, photo, light, symmetries):
     from mideepbasis.model.inputs import encode_inputs
 
     with torch.no_grad():
-        return network(encode_inputs(photo, light), light, symmetries=symmetries)
+        return network(encode_inputs(photo, light, extra_inputs=network.config.extra_inputs), light,
+                       symmetries=symmetries)
 
 
 def _moved_maps(symmetry, maps, inverse=False):
@@ -104,8 +105,9 @@ def _moved_maps(symmetry, maps, inverse=False):
     return symmetry.vectors(symmetry.image(maps, inverse), dim=1, inverse=inverse)
 
 
-@pytest.mark.parametrize("overrides", [{"normal_unit_width": 4}, {}, {"use_local": False}, {"use_bases": False}],
-                         ids=["normal unit", "local unit", "global only", "direct"])
+@pytest.mark.parametrize("overrides", [{"normal_unit_width": 4}, {}, {"use_local": False}, {"use_bases": False},
+                                       {"extra_inputs": ("view",)}],
+                         ids=["normal unit", "local unit", "global only", "direct", "view input"])
 def test_symmetrised_network_is_exactly_equivariant(overrides):
     # The plain network is not: its answer for a turned photo, turned back, differs from its answer
     # for the photo. Averaged over the whole group it must agree to float rounding, for every
