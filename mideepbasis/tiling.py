@@ -32,8 +32,10 @@ def edge_weight(size: int, band: float = DEFAULT_BAND) -> torch.Tensor:
     return (distance * distance * (3.0 - 2.0 * distance)).float()
 
 
-def make_tileable(maps: torch.Tensor, band: float = DEFAULT_BAND, source: str = "maps") -> torch.Tensor:
-    """Maps (10, H, W) that wrap without a seam (see the module docstring).
+def make_tileable(maps: torch.Tensor, band: float = DEFAULT_BAND, source: str = "maps",
+                  in_place: bool = False) -> torch.Tensor:
+    """Maps (10, H, W) that wrap without a seam (see the module docstring); ``in_place``: written
+    over ``maps`` (each channel is read whole before it is written), which is returned.
 
     Raises:
         InputError: maps smaller than ``MIN_TILEABLE_SIZE`` on a side.
@@ -46,13 +48,18 @@ def make_tileable(maps: torch.Tensor, band: float = DEFAULT_BAND, source: str = 
         raise InputError(f"tileable blend band must lie in (0, 0.5] of the size, got {band}")
     # One axis at a time: a copy shifted along both at once would bring its own seam (where the
     # original's top and bottom edges meet) into the side bands, where the copy is used.
-    blended = maps
-    for dim, size in ((-1, width), (-2, height)):
-        weight = edge_weight(size, band).to(maps)
-        weight = weight.view(1, size) if dim == -1 else weight.view(size, 1)
-        blended = weight * blended + (1.0 - weight) * torch.roll(blended, shifts=size // 2, dims=dim)
-    normal = unit_vectors(blended[constants.NORMAL], dim=0)
-    return torch.cat([normal, blended[constants.REFLECTANCE].clamp(0.0, 1.0)])
+    # Channel by channel: at 4096 px the ten channels' shifted copies and products would take 2 GB.
+    blended = maps if in_place else torch.empty_like(maps)
+    for channel in range(maps.shape[0]):
+        value = maps[channel]
+        for dim, size in ((-1, width), (-2, height)):
+            weight = edge_weight(size, band).to(maps)
+            weight = weight.view(1, size) if dim == -1 else weight.view(size, 1)
+            value = weight * value + (1.0 - weight) * torch.roll(value, shifts=size // 2, dims=dim)
+        blended[channel] = value
+    blended[constants.NORMAL] = unit_vectors(blended[constants.NORMAL], dim=0)
+    blended[constants.REFLECTANCE] = blended[constants.REFLECTANCE].clamp(0.0, 1.0)
+    return blended
 
 
 def tiled(image: torch.Tensor, count: int = 3) -> torch.Tensor:
