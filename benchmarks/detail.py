@@ -27,6 +27,9 @@ their normals set flat: strong albedo texture, no relief, where a detail step mu
 colour into relief). A flat normal has no energy to divide by: beside the ratios, each row's
 fine tilt [deg] (the normals' energy above the band as an RMS angle) shows relief made up.
 
+``--visibility`` measures instead how much of the truth's fine relief the photo shows at all
+(``shading_visibility``): no capture, entry ``detail_visibility``.
+
 Writes the figures as the entry ``detail`` of results/model_quality.json and the contact sheet (``--sheet``; ``--no-sheet`` skips it): for two
 relief materials and one flat textured one, the centre half of the sample (512 px at 1024): the
 photo, the true, upsampled and detailed diffuse, the true, upsampled and detailed normal.
@@ -181,6 +184,59 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
             "rows": summary}
 
 
+def shading_visibility(truth: torch.Tensor, photo: torch.Tensor, light: torch.Tensor, band: int) -> dict:
+    """How much of the truth's relief above ``band`` px the photo shows, to first order.
+
+    For a matte surface lit by a point light the photo's contrast above the band,
+    ``c = (I - L(I)) / L(I)`` (luminance, ``L`` the area average to ``band`` px upsampled), is to
+    first order ``s = (l_xy / l_z) . dn_xy``, ``dn`` the normals above the band and ``l`` the unit
+    vector to the flash: only the relief's slope along the light shows, and only in proportion
+    to how far the light is off the normal.
+
+    Args:
+        truth: (1, 10, H, W); photo: (1, 3, H, W) linear; light: (3,) the flash [patch half-widths].
+
+    Returns:
+        ``correlation`` of c and s, ``slope`` of c on s (1 for a matte surface), ``along_light``
+        the fine normal energy's share along the light, ``explained`` = correlation^2 x
+        along_light: the share of the fine normal energy a linear estimate from c could give.
+    """
+    height, width = photo.shape[-2:]
+
+    def above(values: torch.Tensor) -> torch.Tensor:
+        return values - upsample_bilinear(downsample(values, band), height, width)
+
+    luminance = photo.mean(dim=1, keepdim=True)
+    contrast = (above(luminance) / (luminance - above(luminance)).clamp(min=1e-3)).flatten()
+    points = geometry.pixel_points(height, width).reshape(3, -1)
+    towards = geometry.unit_vectors(light.view(3, 1) - points, dim=0)
+    tilt = towards[:2] / towards[2:3]
+    fine = above(truth[:, 0:2])[0].reshape(2, -1)
+    shading = (tilt * fine).sum(dim=0)
+    along = ((geometry.unit_vectors(tilt, dim=0) * fine).sum(dim=0) ** 2).sum() / (fine**2).sum()
+    correlation = float(torch.corrcoef(torch.stack([contrast, shading]))[0, 1])
+    return {"correlation": correlation, "slope": float((contrast * shading).sum() / (shading**2).sum()),
+            "along_light": float(along), "explained": correlation**2 * float(along)}
+
+
+def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, convention: str, extent: float) -> dict:
+    """``shading_visibility`` of each relief material, printed, and their means."""
+    rows = []
+    print(f"{'material':36s} correlation  slope  along light  explained")
+    for index, material in enumerate(chosen):
+        if material["kind"] != "relief":
+            continue
+        truth, variant = true_maps(material, args.size)
+        photos, lights = flash_photos(truth, offsets[index:index + 1], constants.DEFAULT_FOV_DEG, convention, extent)
+        row = {**material, "variant": variant, **shading_visibility(truth, photos, lights[0], args.band)}
+        rows.append(row)
+        print(f"{material['family'] + ' ' + variant:36s} {row['correlation']:11.2f} {row['slope']:6.2f} "
+              f"{row['along_light']:12.2f} {row['explained']:10.3f}", flush=True)
+    means = {key: float(np.mean([row[key] for row in rows])) for key in ("correlation", "along_light", "explained")}
+    print(f"{'mean':36s} {means['correlation']:11.2f} {'':6s} {means['along_light']:12.2f} {means['explained']:10.3f}")
+    return {"size": args.size, "band": args.band, "seed": args.seed, "mean": means, "per_material": rows}
+
+
 def number(value: float | None) -> str:
     """A detail ratio for the printed tables ("-": no true detail)."""
     return "   -  " if value is None else f"{value:6.3f}"
@@ -215,6 +271,8 @@ def main() -> None:
                         help="JSON file whose entry detail gets the figures")
     parser.add_argument("--sheet", type=Path, default=RESULTS / "detail_crops.png")
     parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
+    parser.add_argument("--visibility", action="store_true",
+                        help="only measure how much of the true fine relief the photos show (shading_visibility)")
     args = parser.parse_args()
 
     model = load_model(args.model)
@@ -222,12 +280,16 @@ def main() -> None:
     base = CaptureConfig(fov=fov)
     if args.refine_steps is not None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
+    chosen = materials(args.materials, args.flat)
+    offsets = evaluation_offsets(len(chosen), args.seed, fov)
+    if args.visibility:
+        write_section(args.output, "detail_visibility", "detail --visibility",
+                      visibility_report(chosen, offsets, args, convention, extent))
+        return
     labels = row_labels(args.size, args.low)
     capturers = {labels[0]: Capturer(model, replace(base, resolution=args.low, detail=False)),
                  labels[1]: Capturer(model, replace(base, resolution=args.size, detail=False)),
                  labels[2]: Capturer(model, replace(base, resolution=args.size, detail=True))}
-    chosen = materials(args.materials, args.flat)
-    offsets = evaluation_offsets(len(chosen), args.seed, fov)
     lights, views = random_lights_and_views(args.lights, args.seed)
     sheet_left = dict(SHEET_MATERIALS) if not args.no_sheet else {}
     sheet_rows, records = [], []

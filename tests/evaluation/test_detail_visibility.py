@@ -1,0 +1,53 @@
+"""``benchmarks/detail.py``'s shading_visibility: a matte surface's fine relief shows in its flash
+photo as the first-order shading ``(l_xy / l_z) . dn_xy``, with slope 1."""
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import torch
+
+from mideepbasis import constants, geometry
+from mideepbasis.evaluation import flash_photos
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+def _detail_module():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        spec = importlib.util.spec_from_file_location("benchmarks_detail", BENCHMARKS / "detail.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return module
+
+
+def _matte_relief(size: int, cycles: int, slope: float) -> torch.Tensor:
+    """(1, 10, size, size): grey Lambertian albedo, no specular, normals of the height
+    h = a sin(2 pi k x) sin(2 pi k y) on [-1, 1]^2 with peak slope about ``slope``."""
+    coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
+    y, x = torch.meshgrid(-coords, coords, indexing="ij")
+    frequency = math.pi * cycles
+    amplitude = slope / frequency
+    dh_dx = amplitude * frequency * torch.cos(frequency * x) * torch.sin(frequency * y)
+    dh_dy = amplitude * frequency * torch.sin(frequency * x) * torch.cos(frequency * y)
+    normal = geometry.unit_vectors(torch.stack([-dh_dx, -dh_dy, torch.ones_like(x)]), dim=0).float()
+    maps = torch.zeros(1, 10, size, size)
+    maps[0, constants.NORMAL] = normal
+    maps[0, constants.DIFFUSE] = 0.5
+    maps[0, constants.ROUGHNESS] = 1.0
+    return maps
+
+
+def test_matte_relief_shows_with_slope_one():
+    detail = _detail_module()
+    maps = _matte_relief(256, cycles=24, slope=0.15)
+    photos, lights = flash_photos(maps, torch.tensor([[0.3, -0.2]]), constants.DEFAULT_FOV_DEG, "physical", 1.0)
+    seen = detail.shading_visibility(maps, photos, lights[0], band=64)
+    assert seen["correlation"] > 0.9
+    assert 0.85 < seen["slope"] < 1.15
+    assert 0.3 < seen["along_light"] < 0.7
+    assert abs(seen["explained"] - seen["correlation"] ** 2 * seen["along_light"]) < 1e-9
