@@ -1,6 +1,7 @@
 """Make a training checkpoint the shipped model (mideepbasis/models/deepbasis_compact.safetensors).
 
     .venv/bin/python scripts/ship_model.py runs/RUN/best.safetensors [--half normal_unit] [--normal-unit-octaves 1 0.5]
+    .venv/bin/python scripts/ship_model.py runs/RUN/model.safetensors --blend-with mideepbasis/models/deepbasis_compact.safetensors --blend-weight 0.5
 
 The weights, configuration and training record are kept; the optimiser state of a resumable
 checkpoint is not. ``--half`` stores the named parts (top-level modules) in float16, to keep the
@@ -8,6 +9,12 @@ package under issue 11's 20 MB; ``load_model`` casts them back to float32. The f
 atomically, so the old weights are not kept beside it (MODEL.md records what they were).
 ``--normal-unit-octaves`` sets how the network runs its normal unit
 (``NetworkConfig.normal_unit_octaves``), which needs no new weights.
+
+``--blend-with`` ships the weights interpolated with another model's, ``w x checkpoint + (1 - w) x
+other`` (``--blend-weight`` w): a fine-tune blended with the model it started from keeps much of
+what the fine-tune learnt and much of what the start knew (Wortsman et al. 2022, "Robust
+fine-tuning of zero-shot models"). Input channels the other model lacks count as zero weights
+there, as a fine-tune widened from it starts (``train.trainer.widen_inputs``).
 """
 
 from __future__ import annotations
@@ -16,9 +23,22 @@ import argparse
 import dataclasses
 from pathlib import Path
 
+import torch
+
 from mideepbasis.model.checkpoint import SHIPPED_MODEL, load_model, read_checkpoint, save_checkpoint
+from mideepbasis.train.trainer import widen_inputs
 
 TARGET = Path(__file__).resolve().parents[1] / "mideepbasis" / "models" / SHIPPED_MODEL
+
+
+def blend_weights(model: torch.nn.Module, other: torch.nn.Module, weight: float) -> None:
+    """Set ``model``'s weights to ``weight x model + (1 - weight) x other`` (in place), ``other``'s
+    missing input channels as zeros; integer buffers stay ``model``'s."""
+    state, start = model.state_dict(), other.state_dict()
+    if other.config.input_channels != model.config.input_channels:
+        start = widen_inputs(start, state, other.config.input_channels)
+    model.load_state_dict({name: weight * value + (1.0 - weight) * start[name].to(value.dtype)
+                           if value.is_floating_point() else value for name, value in state.items()})
 
 
 def main() -> None:
@@ -27,10 +47,17 @@ def main() -> None:
     parser.add_argument("--half", nargs="*", default=(), help="parts of the network stored in float16")
     parser.add_argument("--normal-unit-octaves", type=float, nargs="+", default=None,
                         help="weights of the normal unit's slope by octave (NetworkConfig.normal_unit_octaves)")
+    parser.add_argument("--blend-with", type=Path, default=None,
+                        help="a model (say, the one a fine-tune started from) whose weights are blended in")
+    parser.add_argument("--blend-weight", type=float, default=0.5, help="the checkpoint's share of the blend")
     parser.add_argument("-o", "--output", type=Path, default=TARGET)
     args = parser.parse_args()
+    if not 0.0 <= args.blend_weight <= 1.0:
+        parser.error(f"--blend-weight must lie in [0, 1], got {args.blend_weight}")
 
     model = load_model(args.checkpoint)
+    if args.blend_with is not None:
+        blend_weights(model, load_model(args.blend_with), args.blend_weight)
     document, _ = read_checkpoint(args.checkpoint)
     if args.normal_unit_octaves is not None:
         model.config = dataclasses.replace(model.config, normal_unit_octaves=tuple(args.normal_unit_octaves))
@@ -41,6 +68,8 @@ def main() -> None:
     # Re-shipping the shipped file (to change how it runs) keeps the record of where it came from.
     source = training.get("shipped_from", str(args.checkpoint)) if args.checkpoint.resolve() == TARGET else str(args.checkpoint)
     metadata["training"] = {**training, "shipped_from": source, "float16_parts": list(args.half)}
+    if args.blend_with is not None:
+        metadata["training"]["blended_with"] = {"model": str(args.blend_with), "weight_of_shipped_from": args.blend_weight}
     save_checkpoint(args.output, model, metadata=metadata)
     size = args.output.stat().st_size / 2**20
     print(f"wrote {args.output} ({size:.1f} MiB)")

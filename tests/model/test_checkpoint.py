@@ -272,3 +272,39 @@ def test_the_replaced_checkpoint_is_kept_beside_when_asked(tmp_path):
     kept = load_model(previous_path(path)).state_dict()
     assert all(torch.equal(value, first.state_dict()[name]) for name, value in kept.items())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.previous.safetensors", "c.safetensors"]
+
+
+def test_ship_model_blends_a_widened_fine_tune_with_its_start(tmp_path, monkeypatch):
+    import runpy
+    import sys
+    from pathlib import Path
+
+    from mideepbasis.model.checkpoint import load_model, read_checkpoint, save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(5)
+    start_network = DeepBasisNet(preset("tiny"))
+    tuned_network = DeepBasisNet(preset("tiny", extra_inputs=("view",)))
+    start = save_checkpoint(tmp_path / "start.safetensors", start_network)
+    tuned = save_checkpoint(tmp_path / "tuned.safetensors", tuned_network, metadata={"training": {"steps": 3}})
+    shipped = tmp_path / "shipped.safetensors"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
+    monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--blend-weight", "0.25",
+                                      "-o", str(shipped)])
+    runpy.run_path(str(script), run_name="__main__")
+    blended = load_model(shipped).state_dict()
+    narrow, widened = start_network.config.input_channels, []
+    for name, value in tuned_network.state_dict().items():
+        other = start_network.state_dict()[name]
+        if other.shape != value.shape:  # layers that read the input: the start has no view channels
+            assert value.shape[1] == other.shape[1] + 3, name
+            widened.append(name)
+            expected = value.clone() * 0.25
+            expected[:, :narrow] += 0.75 * other[:, :narrow]
+            expected[:, narrow + 3:] += 0.75 * other[:, narrow:]
+        else:
+            expected = 0.25 * value + 0.75 * other if value.is_floating_point() else value
+        torch.testing.assert_close(blended[name], expected, atol=1e-6, rtol=1e-6, msg=name)
+    assert widened == ["encoder.convs.0.weight", "encoder.global_fcs.0.weight", "local_unit.intro.weight"]
+    document, _ = read_checkpoint(shipped)
+    assert document["training"]["blended_with"] == {"model": str(start), "weight_of_shipped_from": 0.25}
