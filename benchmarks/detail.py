@@ -51,7 +51,7 @@ from common import RESULTS, write_section
 from mideepbasis import constants, geometry
 from mideepbasis.capturing import CaptureConfig, Capturer
 from mideepbasis.data.procedural import FAMILIES, generate
-from mideepbasis.evaluation import (DETAIL_BAND, evaluation_offsets, flash_photos, high_band_energy, map_rmse,
+from mideepbasis.evaluation import (DETAIL_BAND, above_band, evaluation_offsets, flash_photos, high_band_energy, map_rmse,
                                     random_lights_and_views, rerender)
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.resampling import downsample, upsample_bilinear
@@ -202,16 +202,13 @@ def shading_visibility(truth: torch.Tensor, photo: torch.Tensor, light: torch.Te
         along_light: the share of the fine normal energy a linear estimate from c could give.
     """
     height, width = photo.shape[-2:]
-
-    def above(values: torch.Tensor) -> torch.Tensor:
-        return values - upsample_bilinear(downsample(values, band), height, width)
-
     luminance = photo.mean(dim=1, keepdim=True)
-    contrast = (above(luminance) / (luminance - above(luminance)).clamp(min=1e-3)).flatten()
+    fine_luminance = above_band(luminance, band)
+    contrast = (fine_luminance / (luminance - fine_luminance).clamp(min=1e-3)).flatten()
     points = geometry.pixel_points(height, width).reshape(3, -1)
     towards = geometry.unit_vectors(light.view(3, 1) - points, dim=0)
     tilt = towards[:2] / towards[2:3]
-    fine = above(truth[:, 0:2])[0].reshape(2, -1)
+    fine = above_band(truth[:, 0:2], band)[0].reshape(2, -1)
     shading = (tilt * fine).sum(dim=0)
     along = ((geometry.unit_vectors(tilt, dim=0) * fine).sum(dim=0) ** 2).sum() / (fine**2).sum()
     correlation = float(torch.corrcoef(torch.stack([contrast, shading]))[0, 1])

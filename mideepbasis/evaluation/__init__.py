@@ -24,8 +24,8 @@ Modules:
 
 """
 
-from .metrics import (DETAIL_BAND, LPIPS, Scores, detail_ratio, flip, high_band_energy, light_error_deg, map_rmse,
-                      rerender, rerender_rmse, score, ssim, ssim_map, summary_scores, trivial_baseline)
+from .metrics import (DETAIL_BAND, LPIPS, Scores, above_band, detail_ratio, flip, high_band_energy, light_error_deg,
+                      map_rmse, rerender, rerender_rmse, score, ssim, ssim_map, summary_scores, trivial_baseline)
 from .protocol import (PAPER_DEEPBASIS, RERENDER_COUNT, ROUGHNESS_GROUPS, EvaluationSet, evaluation_offsets,
                        flash_photos, load_evaluation_materials, load_evaluation_set, random_lights_and_views,
                        resize_maps)
@@ -33,7 +33,8 @@ from .run import EvaluationConfig, lighting_accuracy, run_evaluation
 
 __all__ = [
     "EvaluationConfig", "run_evaluation", "lighting_accuracy",
-    "DETAIL_BAND", "LPIPS", "Scores", "detail_ratio", "flip", "high_band_energy", "light_error_deg", "map_rmse",
+    "DETAIL_BAND", "LPIPS", "Scores", "above_band", "detail_ratio", "flip", "high_band_energy", "light_error_deg",
+    "map_rmse",
     "rerender", "rerender_rmse", "score", "ssim", "ssim_map", "summary_scores", "trivial_baseline",
     "PAPER_DEEPBASIS", "RERENDER_COUNT", "ROUGHNESS_GROUPS", "EvaluationSet", "evaluation_offsets", "flash_photos",
     "load_evaluation_materials", "load_evaluation_set", "random_lights_and_views", "resize_maps",

@@ -64,6 +64,14 @@ def unit_normal_map_rmse(predicted: torch.Tensor, truth: torch.Tensor) -> dict:
 DETAIL_BAND = 128
 
 
+def above_band(values: torch.Tensor, band: int = DETAIL_BAND) -> torch.Tensor:
+    """(B, C, H, W) minus its area average to ``band`` px upsampled bilinearly back to H x W: what
+    ``values`` hold above the band."""
+    from ..resampling import downsample, upsample_bilinear
+
+    return values - upsample_bilinear(downsample(values, band), *values.shape[-2:])
+
+
 def high_band_energy(maps: torch.Tensor, band: int = DETAIL_BAND) -> dict[str, torch.Tensor]:
     """Per-material energy of each map of (B, 10, H, W) above the ``band``-pixel band, (B,) each:
     the mean over pixels of the squared residual ``map - upsample_bilinear(downsample(map, band))``
@@ -76,8 +84,6 @@ def high_band_energy(maps: torch.Tensor, band: int = DETAIL_BAND) -> dict[str, t
     an even factor blurs by [1/8, 3/4, 1/8] along each axis (away from the edges), so 1/8 of the
     band-size map's discrete Laplacian remains.
     """
-    from ..resampling import downsample, upsample_bilinear
-
     height, width = maps.shape[-2:]
     result = {}
     for name, channels in constants.MAP_SLICES.items():
@@ -85,8 +91,7 @@ def high_band_energy(maps: torch.Tensor, band: int = DETAIL_BAND) -> dict[str, t
         if min(height, width) <= band:
             result[name] = torch.zeros(maps.shape[0], dtype=maps.dtype, device=maps.device)
             continue
-        residual = values - upsample_bilinear(downsample(values, band), height, width)
-        result[name] = (residual**2).mean(dim=(2, 3)).sum(dim=1)
+        result[name] = (above_band(values, band)**2).mean(dim=(2, 3)).sum(dim=1)
     return result
 
 

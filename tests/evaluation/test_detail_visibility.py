@@ -27,13 +27,12 @@ def _detail_module():
 
 def _matte_relief(size: int, cycles: int, slope: float) -> torch.Tensor:
     """(1, 10, size, size): grey Lambertian albedo, no specular, normals of the height
-    h = a sin(2 pi k x) sin(2 pi k y) on [-1, 1]^2 with peak slope about ``slope``."""
+    h = a sin(pi k x) sin(pi k y) on [-1, 1]^2 (k = ``cycles``), a = slope / (pi k): peak slope ``slope``."""
     coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
     y, x = torch.meshgrid(-coords, coords, indexing="ij")
     frequency = math.pi * cycles
-    amplitude = slope / frequency
-    dh_dx = amplitude * frequency * torch.cos(frequency * x) * torch.sin(frequency * y)
-    dh_dy = amplitude * frequency * torch.sin(frequency * x) * torch.cos(frequency * y)
+    dh_dx = slope * torch.cos(frequency * x) * torch.sin(frequency * y)
+    dh_dy = slope * torch.sin(frequency * x) * torch.cos(frequency * y)
     normal = geometry.unit_vectors(torch.stack([-dh_dx, -dh_dy, torch.ones_like(x)]), dim=0).float()
     maps = torch.zeros(1, 10, size, size)
     maps[0, constants.NORMAL] = normal
