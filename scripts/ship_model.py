@@ -14,7 +14,8 @@ atomically, so the old weights are not kept beside it (MODEL.md records what the
 other`` (``--blend-weight`` w): a fine-tune blended with the model it started from keeps much of
 what the fine-tune learnt and much of what the start knew (Wortsman et al. 2022, "Robust
 fine-tuning of zero-shot models"). Input channels the other model lacks count as zero weights
-there, as a fine-tune widened from it starts (``train.trainer.widen_inputs``).
+there, as a fine-tune widened from it starts (``train.trainer.widen_inputs``). ``--blend-parts``
+blends only the named parts: a unit retrained on top of a blend keeps its new weights.
 """
 
 from __future__ import annotations
@@ -31,14 +32,24 @@ from mideepbasis.train.trainer import widen_inputs
 TARGET = Path(__file__).resolve().parents[1] / "mideepbasis" / "models" / SHIPPED_MODEL
 
 
-def blend_weights(model: torch.nn.Module, other: torch.nn.Module, weight: float) -> None:
+def blend_weights(model: torch.nn.Module, other: torch.nn.Module, weight: float,
+                  parts: tuple[str, ...] | None = None) -> None:
     """Set ``model``'s weights to ``weight x model + (1 - weight) x other`` (in place), ``other``'s
-    missing input channels as zeros; integer buffers stay ``model``'s."""
+    missing input channels as zeros; integer buffers stay ``model``'s, and so do the parts
+    (top-level modules) not in ``parts`` when it is given."""
     state, start = model.state_dict(), other.state_dict()
     if other.config.input_channels != model.config.input_channels:
         start = widen_inputs(start, state, other.config.input_channels)
+    known = {name.split(".")[0] for name in state}
+    unknown = sorted(set(parts or ()) - known)
+    if unknown:
+        raise SystemExit(f"ship_model: --blend-parts: no part {unknown} in the network (its parts: {sorted(known)})")
+
+    def blended(name: str) -> bool:
+        return parts is None or name.split(".")[0] in parts
+
     model.load_state_dict({name: weight * value + (1.0 - weight) * start[name].to(value.dtype)
-                           if value.is_floating_point() else value for name, value in state.items()})
+                           if value.is_floating_point() and blended(name) else value for name, value in state.items()})
 
 
 def main() -> None:
@@ -50,6 +61,8 @@ def main() -> None:
     parser.add_argument("--blend-with", type=Path, default=None,
                         help="a model (say, the one a fine-tune started from) whose weights are blended in")
     parser.add_argument("--blend-weight", type=float, default=0.5, help="the checkpoint's share of the blend")
+    parser.add_argument("--blend-parts", nargs="+", default=None,
+                        help="blend only these parts (top-level modules); the others stay the checkpoint's")
     parser.add_argument("-o", "--output", type=Path, default=TARGET)
     args = parser.parse_args()
     if not 0.0 <= args.blend_weight <= 1.0:
@@ -57,7 +70,8 @@ def main() -> None:
 
     model = load_model(args.checkpoint)
     if args.blend_with is not None:
-        blend_weights(model, load_model(args.blend_with), args.blend_weight)
+        blend_weights(model, load_model(args.blend_with), args.blend_weight,
+                      None if args.blend_parts is None else tuple(args.blend_parts))
     document, _ = read_checkpoint(args.checkpoint)
     if args.normal_unit_octaves is not None:
         model.config = dataclasses.replace(model.config, normal_unit_octaves=tuple(args.normal_unit_octaves))
@@ -69,7 +83,8 @@ def main() -> None:
     source = training.get("shipped_from", str(args.checkpoint)) if args.checkpoint.resolve() == TARGET else str(args.checkpoint)
     metadata["training"] = {**training, "shipped_from": source, "float16_parts": list(args.half)}
     if args.blend_with is not None:
-        metadata["training"]["blended_with"] = {"model": str(args.blend_with), "weight_of_shipped_from": args.blend_weight}
+        metadata["training"]["blended_with"] = {"model": str(args.blend_with), "weight_of_shipped_from": args.blend_weight,
+                                                "parts": args.blend_parts or "all"}
     save_checkpoint(args.output, model, metadata=metadata)
     size = args.output.stat().st_size / 2**20
     print(f"wrote {args.output} ({size:.1f} MiB)")

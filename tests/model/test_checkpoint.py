@@ -307,4 +307,40 @@ def test_ship_model_blends_a_widened_fine_tune_with_its_start(tmp_path, monkeypa
         torch.testing.assert_close(blended[name], expected, atol=1e-6, rtol=1e-6, msg=name)
     assert widened == ["encoder.convs.0.weight", "encoder.global_fcs.0.weight", "local_unit.intro.weight"]
     document, _ = read_checkpoint(shipped)
-    assert document["training"]["blended_with"] == {"model": str(start), "weight_of_shipped_from": 0.25}
+    assert document["training"]["blended_with"] == {"model": str(start), "weight_of_shipped_from": 0.25,
+                                                    "parts": "all"}
+
+
+def test_ship_model_blends_only_the_named_parts(tmp_path, monkeypatch):
+    import runpy
+    import sys
+    from pathlib import Path
+
+    from mideepbasis.model.checkpoint import load_model, read_checkpoint, save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(6)
+    start_network, tuned_network = DeepBasisNet(preset("tiny")), DeepBasisNet(preset("tiny"))
+    start = save_checkpoint(tmp_path / "start.safetensors", start_network)
+    tuned = save_checkpoint(tmp_path / "tuned.safetensors", tuned_network)
+    shipped = tmp_path / "shipped.safetensors"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
+    monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--blend-weight", "0.8",
+                                      "--blend-parts", "encoder", "global_unit", "-o", str(shipped)])
+    runpy.run_path(str(script), run_name="__main__")
+    blended, parts_seen = load_model(shipped).state_dict(), set()
+    for name, value in tuned_network.state_dict().items():
+        part = name.split(".")[0]
+        parts_seen.add(part)
+        other = start_network.state_dict()[name]
+        blends = part in ("encoder", "global_unit") and value.is_floating_point()
+        expected = 0.8 * value + 0.2 * other if blends else value
+        torch.testing.assert_close(blended[name], expected, atol=1e-6, rtol=1e-6, msg=name)
+    assert {"encoder", "global_unit", "weight_decoder", "local_unit"} <= parts_seen
+    document, _ = read_checkpoint(shipped)
+    assert document["training"]["blended_with"]["parts"] == ["encoder", "global_unit"]
+    monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--blend-parts", "decoder",
+                                      "-o", str(tmp_path / "other.safetensors")])
+    with pytest.raises(SystemExit, match="no part"):
+        runpy.run_path(str(script), run_name="__main__")
+    assert not (tmp_path / "other.safetensors").exists()
