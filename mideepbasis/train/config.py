@@ -204,8 +204,9 @@ class TrainConfig:
             raise ValueError(f"unknown network parts {unknown} to train; expected some of {list(TRAINABLE_PARTS)}")
         if self.normal_pool < 0:
             raise ValueError(f"normal_pool {self.normal_pool} must be 0 (off) or a number of materials")
-        if (self.normal_pool or self.local_pool) and self.synthesis.fov_range is not None:
-            raise ValueError("the unit pools photograph at one field of view: synthesis.fov_range needs the whole network")
+        if self.normal_pool and self.synthesis.fov_range is not None:
+            raise ValueError("the normal pool photographs at one field of view: synthesis.fov_range needs the local "
+                             "pool or the whole network")
         if self.normal_pool and self.local_pool:
             raise ValueError("local_pool and normal_pool train different units: give one of them")
         if self.normal_pool:

@@ -193,7 +193,7 @@ class LocalUnitBatch:
 
 class LocalUnitPool(PhotographedPool):
     """The training data of the local unit alone (``TrainConfig.local_pool``): for each material of
-    the pool (``PhotographedPool``), what ``stage_of`` (network inputs, lights) gives: the local
+    the pool (``PhotographedPool``), what ``stage_of`` (network inputs, lights, field of view) gives: the local
     unit's inputs, the weights, the global bases and the normal unit's slope, from the frozen rest
     of the network; beside the true maps."""
 
@@ -210,13 +210,14 @@ class LocalUnitPool(PhotographedPool):
         super().__init__(materials, config, step, count, config.local_pool_refresh)
 
     def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
-        local_inputs, weights, global_bases, slope = self.stage_of(batch.inputs, batch.lights)
+        # Each material at the field of view it was photographed at (``SynthesisConfig.fov_range``).
+        local_inputs, weights, global_bases, slope = self.stage_of(batch.inputs, batch.lights, batch.fov)
         self.local_inputs[slot], self.weights[slot], self.global_bases[slot] = local_inputs[0], weights[0], global_bases[0]
         self.slope[slot], self.maps[slot] = slope[0], batch.maps[0]
         if self.diffuse_weights is not None:
             config = self.config
             self.diffuse_weights[slot] = highlight_weights(batch.maps, batch.lights, config.highlight_weight,
-                                                           config.synthesis.fov, config.network.convention,
+                                                           batch.fov, config.network.convention,
                                                            config.network.plane_extent)[0]
 
     def batch(self, generator: torch.Generator) -> LocalUnitBatch:

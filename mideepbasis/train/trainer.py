@@ -351,10 +351,9 @@ class Trainer:
     def unit_pool(self) -> PhotographedPool:
         """The pool of the unit trained alone (``normal_pool`` or ``local_pool``) at this step."""
         model = getattr(self.model, "module", self.model)
-        fov = self.config.synthesis.fov
         if self.config.local_pool:
             @torch.no_grad()
-            def stage_of(inputs: torch.Tensor, lights: torch.Tensor):
+            def stage_of(inputs: torch.Tensor, lights: torch.Tensor, fov: float):
                 inputs, lights = inputs.to(self.device), lights.to(self.device)
                 stage = model.basis_stage(inputs, lights, fov)
                 slope = torch.zeros_like(stage.error[:, :2])

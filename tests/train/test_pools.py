@@ -155,6 +155,44 @@ def test_the_local_pool_holds_what_the_network_gives_its_local_unit(tmp_path):
     torch.testing.assert_close(pool.maps[1], maps[0])
 
 
+def test_the_local_pool_takes_each_material_at_its_own_field_of_view(tmp_path):
+    """With ``fov_range`` each pool material is photographed at a field of view of its own, and its
+    stage and highlight weights are the network's and the lobe's at that field of view."""
+    from mideepbasis.data.synth import synthesize
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, DeepBasisOutput, preset
+    from mideepbasis.train.losses import highlight_weights
+
+    torch.manual_seed(0)
+    source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny", normal_unit_width=4)))
+    config = local_pool_config(tmp_path, init=str(source), highlight_weight=4.0,
+                               synthesis={"fov_range": (20.0, 75.0)})
+    trainer = Trainer(config, progress=False)
+    pool, model, config = trainer.unit_pool(), trainer.model, trainer.config
+    fovs = []
+    for slot in range(3):
+        maps = trainer.materials()[slot][None]
+        photographed = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + slot), config.synthesis)
+        fovs.append(photographed.fov)
+        with torch.no_grad():
+            expected = model(photographed.inputs, photographed.lights, fov=photographed.fov).maps
+            at_45 = model(photographed.inputs, photographed.lights, fov=45.0).maps
+            deviations = model.local_deviations(pool.local_inputs[slot:slot + 1], pool.weights[slot:slot + 1],
+                                                pool.global_bases[slot:slot + 1])
+        slope = pool.slope[slot:slot + 1]
+        shared = torch.cat([slope, torch.zeros(1, 8, *slope.shape[-2:])], 1)
+        rebuilt = DeepBasisOutput.from_bases(pool.weights[slot:slot + 1], pool.global_bases[slot:slot + 1],
+                                             deviations + shared[:, None], keep_bases=False).maps
+        torch.testing.assert_close(rebuilt, expected, atol=1e-5, rtol=0)
+        assert (rebuilt - at_45).abs().max() > 1e-4  # the field of view matters to the stage
+        torch.testing.assert_close(pool.diffuse_weights[slot:slot + 1],
+                                   highlight_weights(maps, photographed.lights, 4.0, photographed.fov,
+                                                     config.network.convention, config.network.plane_extent))
+    assert len(set(fovs)) == 3 and all(20.0 <= fov <= 75.0 for fov in fovs)
+    with pytest.raises(ValueError, match="normal pool photographs at one field of view"):
+        pool_config(tmp_path, synthesis={"fov_range": (20.0, 75.0)})
+
+
 def test_the_local_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path):
     from mideepbasis.model.checkpoint import save_checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
