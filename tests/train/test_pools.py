@@ -128,11 +128,23 @@ def test_the_normal_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path
         tiny_config(tmp_path, normal_pool=-1)
 
 
+def rebuilt_from_pool(model, pool, slot: int) -> torch.Tensor:
+    """(1, 10, H, W) the maps of pool material ``slot`` rebuilt from its stored stage as a step of
+    the local unit does: its deviations plus the stored normal-unit slope, blended."""
+    with torch.no_grad():
+        deviations = model.local_deviations(pool.local_inputs[slot:slot + 1], pool.weights[slot:slot + 1],
+                                            pool.global_bases[slot:slot + 1])
+    slope = pool.slope[slot:slot + 1]
+    shared = torch.cat([slope, torch.zeros(1, 8, *slope.shape[-2:])], 1)
+    return DeepBasisOutput.from_bases(pool.weights[slot:slot + 1], pool.global_bases[slot:slot + 1],
+                                      deviations + shared[:, None], keep_bases=False).maps
+
+
 def test_the_local_pool_holds_what_the_network_gives_its_local_unit(tmp_path):
     """A local-pool material, rebuilt from the stored stage as a step does, is the network's own prediction."""
     from mideepbasis.data.synth import synthesize
     from mideepbasis.model.checkpoint import save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, DeepBasisOutput, preset
+    from mideepbasis.model.network import DeepBasisNet, preset
     from mideepbasis.train import LocalUnitPool
 
     torch.manual_seed(0)
@@ -145,13 +157,8 @@ def test_the_local_pool_holds_what_the_network_gives_its_local_unit(tmp_path):
     photographed = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + 1), config.synthesis)
     with torch.no_grad():
         expected = model(photographed.inputs, photographed.lights, fov=config.synthesis.fov).maps
-        deviations = model.local_deviations(pool.local_inputs[1:2], pool.weights[1:2], pool.global_bases[1:2])
-    slope = pool.slope[1:2]
-    assert slope.abs().max() > 0  # the normal unit's part is there
-    shared = torch.cat([slope, torch.zeros(1, 8, *slope.shape[-2:])], 1)
-    rebuilt = DeepBasisOutput.from_bases(pool.weights[1:2], pool.global_bases[1:2], deviations + shared[:, None],
-                                         keep_bases=False).maps
-    torch.testing.assert_close(rebuilt, expected, atol=1e-5, rtol=0)
+    assert pool.slope[1].abs().max() > 0  # the normal unit's part is there
+    torch.testing.assert_close(rebuilt_from_pool(model, pool, 1), expected, atol=1e-5, rtol=0)
     torch.testing.assert_close(pool.maps[1], maps[0])
 
 
@@ -160,7 +167,7 @@ def test_the_local_pool_takes_each_material_at_its_own_field_of_view(tmp_path):
     stage and highlight weights are the network's and the lobe's at that field of view."""
     from mideepbasis.data.synth import synthesize
     from mideepbasis.model.checkpoint import save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, DeepBasisOutput, preset
+    from mideepbasis.model.network import DeepBasisNet, preset
     from mideepbasis.train.losses import highlight_weights
 
     torch.manual_seed(0)
@@ -177,12 +184,7 @@ def test_the_local_pool_takes_each_material_at_its_own_field_of_view(tmp_path):
         with torch.no_grad():
             expected = model(photographed.inputs, photographed.lights, fov=photographed.fov).maps
             at_45 = model(photographed.inputs, photographed.lights, fov=45.0).maps
-            deviations = model.local_deviations(pool.local_inputs[slot:slot + 1], pool.weights[slot:slot + 1],
-                                                pool.global_bases[slot:slot + 1])
-        slope = pool.slope[slot:slot + 1]
-        shared = torch.cat([slope, torch.zeros(1, 8, *slope.shape[-2:])], 1)
-        rebuilt = DeepBasisOutput.from_bases(pool.weights[slot:slot + 1], pool.global_bases[slot:slot + 1],
-                                             deviations + shared[:, None], keep_bases=False).maps
+        rebuilt = rebuilt_from_pool(model, pool, slot)
         torch.testing.assert_close(rebuilt, expected, atol=1e-5, rtol=0)
         assert (rebuilt - at_45).abs().max() > 1e-4  # the field of view matters to the stage
         torch.testing.assert_close(pool.diffuse_weights[slot:slot + 1],
