@@ -7,7 +7,14 @@ A/B at equal steps. Each is one ``mideepbasis train`` process (torch render back
 autocast); they share the GPU and split the CPU cores between their material workers. A short
 calibration run measures the steps per second of all variants together, so that the cosine
 schedule of the real runs ends when the budget does. What comes back under ``--out``: each
-variant's ``best.safetensors`` (by held-out validation), its ``train.jsonl``, and ``device.log``.
+variant's ``best.safetensors`` (by held-out validation), its ``train.jsonl``, and ``device.log``;
+with ``--final-only``, each variant's last weights in float16 and one ``train.jsonl`` of all
+variants (four variants within the device tool's eight files and 64 MiB):
+
+    python3 scripts/device_train.py --variants phone phone_highlight phone_highlight_local \
+        phone_highlight_less_colour --minutes 6 --lr 5e-5 --local-lr 5e-5 --final-only --out $OUT
+
+The script imports the package itself: run it with the repository root on ``PYTHONPATH``.
 """
 
 from __future__ import annotations
@@ -20,6 +27,19 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+#: The phone-photo fine-tune's flags (the architecture of the shipped model spelt out, the
+#: generator's relief, every phone lever of ``synth.PHONE_PHOTOS`` with 40 % plain batches).
+PHONE_FINE_TUNE = [
+    "--network-normal-unit-width", "16", "--network-normal-unit-blocks", "1,1,1,2",
+    "--network-normal-unit-middle-blocks", "4", "--network-normal-unit-octaves", "1,0.5",
+    "--network-normal-slope-scaled", "--network-extra-inputs", "view", "--render-weight", "0", "--vc-weight", "0",
+    "--seed", "211", "--warmup-steps", "100", "--procedural-relief-tilt-deg", "1.5,30",
+    "--procedural-coarse-relief-tilt-deg", "2.5,35", "--procedural-coarse-relief-probability", "0.85",
+    "--synthesis-fov-range", "20,75", "--synthesis-cast-in-diffuse", "--synthesis-white-balance-sigma", "0.08",
+    "--synthesis-tone-contrast", "0,0.6", "--synthesis-vignetting", "0,0.35", "--synthesis-flash-cone", "0,3",
+    "--synthesis-jpeg-quality", "70,95", "--synthesis-tilt-deg", "4", "--synthesis-plain-probability", "0.4",
+    "--train-only", "encoder,weight_decoder,global_unit"]
 
 #: Variant name -> extra ``train`` flags. All share COMMON.
 VARIANTS = {
@@ -44,6 +64,18 @@ VARIANTS = {
                            "--train-only", "normal_unit", "--procedural-coarse-relief-tilt-deg", "1.5,30"],
     "coarse_all": ["--render-weight", "0", "--network-normal-unit-width", "16",
                    "--procedural-coarse-relief-tilt-deg", "1.5,30"],
+    # Issue 43: the fine-tune on photos as phones take them (the CPU recipe of MODEL.md's "Tried"
+    # table), from the shipped weights; give --lr 5e-5 --local-lr 5e-5.
+    "phone": PHONE_FINE_TUNE,
+    # The same with the diffuse loss weighted under the flash's highlight, against the leak.
+    "phone_highlight": [*PHONE_FINE_TUNE, "--highlight-weight", "8"],
+    # ... with the local unit trained too, so that it adapts to the encoder it is fed by.
+    "phone_highlight_local": [*PHONE_FINE_TUNE, "--highlight-weight", "8",
+                              "--train-only", "encoder,weight_decoder,global_unit,local_unit"],
+    # ... with fewer colour levers: a colour cast in the diffuse and a strong white-balance error
+    # make the diffuse colour of a photo ambiguous.
+    "phone_highlight_less_colour": [*(flag for flag in PHONE_FINE_TUNE if flag != "--synthesis-cast-in-diffuse"),
+                                    "--synthesis-white-balance-sigma", "0.04", "--highlight-weight", "8"],
 }
 
 COMMON = ["--preset", "compact", "--data", "procedural", "--render-backend", "torch", "--bf16",
@@ -59,17 +91,49 @@ def launch(name: str, flags: list[str], out: Path, workers: int, log) -> subproc
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=environment)
 
 
-def copy_results(runs: Path, out: Path, names: list[str], files=("best.safetensors", "train.jsonl")) -> None:
-    """Copy each variant's best weights and log into ``out`` (temporary file, then rename), so that
-    a run killed at the call's time limit still brings back what it has."""
+def halved(source: Path, target: Path) -> None:
+    """Write ``source``'s weights to ``target`` in float16, as ``ship_model.py --half`` does to every
+    part (``load_model`` casts them back): a float32 checkpoint of the shipped network is over
+    the 16 MiB a file that comes back from the device machine."""
+    from mideepbasis.model.checkpoint import load_model, read_checkpoint, save_checkpoint
+
+    model = load_model(source)
+    document, _ = read_checkpoint(source)
+    metadata = {key: value for key, value in document.items() if key in ("training", "photo_decoding", "fov_deg")}
+    metadata["training"] = {**metadata.get("training", {}), "shipped_from": str(source),
+                            "float16_parts": [name for name, _ in model.named_children()]}
+    save_checkpoint(target, model.half(), metadata=metadata)
+
+
+def copy_results(runs: Path, out: Path, names: list[str], files=("best.safetensors", "train.jsonl"),
+                 half: bool = False) -> None:
+    """Copy each variant's weights and log into ``out`` (temporary file, then rename), so that
+    a run killed at the call's time limit still brings back what it has; ``half``: the weights in
+    float16, and every variant's log in one ``out / "train.jsonl"`` (a ``variant`` field in each
+    record), to keep within the device tool's eight files."""
+    logs = []
     for name in names:
         (out / name).mkdir(parents=True, exist_ok=True)
         for file in files:
             source = runs / name / file
-            if source.exists():
-                temporary = out / name / f".{file}.tmp"
+            if not source.exists():
+                continue
+            if half and file == "train.jsonl":
+                logs += [json.dumps({"variant": name, **json.loads(line)}) for line in source.read_text().splitlines()]
+                continue
+            target = out / name / file
+            if target.exists() and target.stat().st_mtime >= source.stat().st_mtime:
+                continue  # unchanged since the last copy
+            temporary = out / name / f".{file}.tmp"
+            if half and file.endswith(".safetensors"):
+                halved(source, temporary)
+            else:
                 shutil.copy(source, temporary)
-                os.replace(temporary, out / name / file)
+            os.replace(temporary, target)
+    if logs:
+        temporary = out / ".train.jsonl.tmp"
+        temporary.write_text("\n".join(logs) + "\n")
+        os.replace(temporary, out / "train.jsonl")
 
 
 def wait_all(processes: dict, log, every: float = 0.0, copy=None) -> None:
@@ -105,6 +169,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=0, help="material workers per variant (0: share the cores)")
     parser.add_argument("--keep-final", action="store_true",
                         help="bring back the last weights too (model.safetensors; mind the 8-file limit)")
+    parser.add_argument("--final-only", action="store_true",
+                        help="bring back only the last weights, in float16, and the logs in one file (best.safetensors "
+                             "while the runs last): four variants fit the device tool's limits")
     parser.add_argument("--device", default="cuda", help="cuda, or cpu to try the script on a small machine")
     parser.add_argument("--size", type=int, default=128, help="training resolution [pixels]")
     parser.add_argument("--out", type=Path, required=True)
@@ -130,11 +197,20 @@ def main() -> None:
           f"{steps} steps", file=log, flush=True)
 
     files = ("best.safetensors", "train.jsonl") + (("model.safetensors",) if args.keep_final else ())
-    copy = lambda: copy_results(args.runs, args.out, args.variants, files)  # noqa: E731
+    copy = lambda: copy_results(args.runs, args.out, args.variants, files, half=args.final_only)  # noqa: E731
     wait_all({name: launch(name, [*common, "--steps", str(steps), "--validate-every", str(max(50, steps // args.validations)),
                                   "--max-minutes", str(args.minutes)], args.runs, workers, log)
               for name in args.variants}, log, every=20.0, copy=copy)
     copy()
+    if args.final_only:
+        for name in args.variants:
+            # A run stopped by --max-minutes leaves its last weights in its checkpoint alone.
+            last = next((file for file in ("model.safetensors", "checkpoint.safetensors")
+                         if (args.runs / name / file).exists()), None)
+            if last is not None:
+                halved(args.runs / name / last, args.out / name / "model.safetensors")
+                (args.out / name / "best.safetensors").unlink(missing_ok=True)
+                print(f"{name}: brought back its {last}", file=log, flush=True)
     for name in args.variants:
         run = args.runs / name
         final = [json.loads(line) for line in (run / "train.jsonl").read_text().splitlines()]

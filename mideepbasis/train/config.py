@@ -174,8 +174,9 @@ class TrainConfig:
     (MODEL.md); kept, the roughness cannot drift. Costs one more local-unit pass a step."""
 
     highlight_weight: float = 0.0
-    """Extra weight of the diffuse map's loss under the flash's highlight, for the local unit alone
-    (``local_pool``): each pixel's diffuse error weighs 1 + w * (the true specular lobe's
+    """Extra weight of the diffuse map's loss under the flash's highlight (the whole network's
+    step, or the local unit's with ``local_pool``; not the normal pool's, which has no diffuse):
+    each pixel's diffuse error weighs 1 + w * (the true specular lobe's
     brightness under the photo's flash, over its 99th percentile, at most 1), divided by the
     material's mean of that (``highlight_weights``). The
     highlight covers a few percent of a photo, so the plain loss hardly minds a highlight baked
@@ -233,8 +234,9 @@ class TrainConfig:
         unknown = [name for name in self.local_pool_keep if name not in constants.MAP_SLICES]
         if unknown:
             raise ValueError(f"local_pool_keep: unknown maps {unknown}; known: {list(constants.MAP_SLICES)}")
-        if self.highlight_weight < 0 or (self.highlight_weight and not self.local_pool):
-            raise ValueError(f"highlight_weight {self.highlight_weight} must be 0, or positive with local_pool")
+        if self.highlight_weight < 0 or (self.highlight_weight and self.normal_pool):
+            raise ValueError(f"highlight_weight {self.highlight_weight} must be 0, or positive without normal_pool "
+                             "(the normal unit's loss has no diffuse map)")
         if self.local_pool_keep and not (self.local_pool and self.init):
             raise ValueError("local_pool_keep keeps maps as the init gives them: it needs local_pool and init")
 

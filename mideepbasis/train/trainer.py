@@ -23,8 +23,8 @@ from ..model.checkpoint import CheckpointError, non_finite_tensors, previous_pat
 from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, to_signed
 from .config import LOCAL_UNIT_FIELDS, RESUMABLE_CHANGES, TrainConfig
 from .data import LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials
-from .losses import (learning_rate_factor, normal_unit_loss, normals_over_flat, rendering_loss, sample_render_geometry,
-                     saturation_penalty, supervised_loss, variation_consistency_loss)
+from .losses import (highlight_weights, learning_rate_factor, normal_unit_loss, normals_over_flat, rendering_loss,
+                     sample_render_geometry, saturation_penalty, supervised_loss, variation_consistency_loss)
 
 
 class TrainingDiverged(MideepbasisError):
@@ -256,14 +256,19 @@ class Trainer:
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=config.bf16):
             output = self.model(inputs.to(self.device), lights.to(self.device), fov=batch.fov)
         target = batch.maps.to(self.device)
+        diffuse_weights = None
+        if config.highlight_weight:
+            diffuse_weights = highlight_weights(target, batch.lights.to(self.device), config.highlight_weight, batch.fov,
+                                                config.network.convention, config.network.plane_extent)
         if use_vc:
             original, varied = output.split(maps.shape[0])
             variation = Variation(batch.variation.rotation.to(self.device), batch.variation.shift.to(self.device))
-            sup = supervised_loss(original, target, config.normal_weight)
+            sup = supervised_loss(original, target, config.normal_weight, diffuse_weights=diffuse_weights)
             vc = variation_consistency_loss(original, varied, variation, batch.varied_maps.to(self.device),
                                             config.normal_weight)
         else:
-            sup, vc = supervised_loss(output, target, config.normal_weight), torch.zeros((), device=self.device)
+            sup = supervised_loss(output, target, config.normal_weight, diffuse_weights=diffuse_weights)
+            vc = torch.zeros((), device=self.device)
         saturation = saturation_penalty(output.extras["decoder_raw"].float())
         loss, losses = self._with_rendering_loss(sup + config.vc_weight * vc + config.saturation_weight * saturation,
                                                  (original if use_vc else output).maps, target)

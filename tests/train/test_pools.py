@@ -272,10 +272,35 @@ def test_the_local_pool_stores_the_highlight_weights_of_its_materials(tmp_path):
     assert float(pool.diffuse_weights[0].mean()) == pytest.approx(1.0)
     assert trainer.train_step(batch)["loss"] > 0
     assert Trainer(local_pool_config(tmp_path / "off"), progress=False).unit_pool().diffuse_weights is None
-    with pytest.raises(ValueError, match="positive with local_pool"):
-        tiny_config(tmp_path, highlight_weight=2.0)
-    with pytest.raises(ValueError, match="positive with local_pool"):
+    with pytest.raises(ValueError, match="positive without normal_pool"):
+        pool_config(tmp_path, highlight_weight=2.0)
+    with pytest.raises(ValueError, match="positive without normal_pool"):
         local_pool_config(tmp_path, highlight_weight=-1.0)
+
+
+@pytest.mark.parametrize("vc_weight", [0.0, 0.05])
+def test_the_whole_network_step_weighs_the_diffuse_under_the_highlight(tmp_path, vc_weight):
+    """The whole network's supervised loss with ``highlight_weight`` is the L1 with the diffuse
+    pixels weighted by the true lobe under the step's own photo flashes."""
+    from mideepbasis.data.synth import synthesize
+    from mideepbasis.model.network import to_signed
+    from mideepbasis.train.losses import channel_weights, highlight_weights
+
+    trainer = Trainer(tiny_config(tmp_path, highlight_weight=6.0, vc_weight=vc_weight,
+                                  synthesis={"fov_range": (20.0, 75.0)}), progress=False)
+    maps = torch.stack([trainer.materials()[slot] for slot in range(2)])
+    state = trainer.generator.get_state()
+    photographed = synthesize(maps, trainer.generator, trainer.synthesis, trainer._extra_inputs())
+    trainer.generator.set_state(state)
+    with torch.no_grad():
+        predicted = trainer.model(photographed.inputs, photographed.lights, fov=photographed.fov).signed_maps
+    weights = highlight_weights(maps, photographed.lights, 6.0, photographed.fov, trainer.config.network.convention,
+                                trainer.config.network.plane_extent)
+    difference = (predicted - to_signed(maps)).abs()
+    difference[:, 3:6] *= weights
+    expected = (difference * channel_weights(trainer.config.normal_weight)).mean()
+    assert float(weights.amax()) > 1.5  # the highlight does weigh more
+    assert trainer.train_step(maps)["l_sup"] == pytest.approx(float(expected), rel=1e-4)
 
 
 def test_a_normal_pool_of_two_octaves_holds_the_photo_area_averaged_and_crops_both_alike(tmp_path):
