@@ -30,6 +30,7 @@ a row each: photo, diffuse, normal, roughness, specular, the re-render under the
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -154,12 +155,17 @@ def main() -> None:
     parser.add_argument("--scenes", type=Path, default=Path("runs/phone_scenes"),
                         help="calibrated phone scenes with their truth (mideepbasis data scenes)")
     parser.add_argument("--skip-shared", action="store_true", help="leave out the shared set and the demo")
+    parser.add_argument("--refine-steps", type=int, default=None,
+                        help="the captures' refinement steps (0: the network's maps alone; default: capture's)")
+    parser.add_argument("--refine-prior", type=float, default=None, help="the captures' refinement pull (capture's default)")
     args = parser.parse_args()
 
     model = load_model(args.model)
     fov, convention = constants.DEFAULT_FOV_DEG, model.config.convention
-    capturer = Capturer(model, CaptureConfig())
-    report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE}
+    refine = CaptureConfig().refine
+    changes = {key: value for key, value in (("steps", args.refine_steps), ("prior", args.refine_prior)) if value is not None}
+    capturer = Capturer(model, CaptureConfig(refine=dataclasses.replace(refine, **changes)))
+    report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE, "refine_changes": changes}
     real, rows = real_photos(capturer, args.real)
     report["real_photos"] = {**summary(real), "per_photo": real}
     print(f"real photos ({len(real)}): mean |imprint| {report['real_photos']['mean_abs_imprint']:.4f} (signed "

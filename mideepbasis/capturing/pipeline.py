@@ -329,6 +329,8 @@ class Capturer:
         if self.config.refine.steps <= 0 or prediction.output.weights is None:
             return prediction, []
         light = flash_position(offset, photo.fov)
+        if self.config.refine.unclamped_moves:
+            prediction = replace(prediction, output=prediction.output.unsaturated())
         refined, losses = refine_global_bases(prediction.output, photo.pixels, light, photo.fov, self.convention,
                                               self.model.config.plane_extent, self.config.refine, progress,
                                               size=prediction.size)

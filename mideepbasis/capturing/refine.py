@@ -66,6 +66,12 @@ class RefineConfig:
     cannot tint a dielectric's highlight with the photo's colour processing; a basis the network
     made a metal's (its specular's channels spread over ``METAL_SPREAD``) moves them apart."""
 
+    unclamped_moves: bool = True
+    """Let a global basis's change move every pixel where that basis weighs
+    (``DeepBasisOutput.unsaturated``). Off: pixels the local unit pushed past a bound of the signed
+    space stay there, only a basis's other channels move, and real photos end with a green
+    specular (``benchmarks/README.md``, refinement_real)."""
+
     def __post_init__(self):
         unknown = [name for name in self.moving_maps if name not in ("diffuse", "roughness", "specular")]
         if unknown:
@@ -202,6 +208,13 @@ def encoded(linear: torch.Tensor) -> torch.Tensor:
     return linear_to_srgb(linear.clamp(min=constants.REFINE_ENCODING_FLOOR))
 
 
+def basis_bound(config: RefineConfig) -> float:
+    """The largest magnitude of a refined global basis value: the signed space's 1; 2 with
+    ``unclamped_moves``, so that a basis at a bound whose deviations lift some pixels off it can
+    still lower them (a global basis plus a deviation in [-1, 1] spans [-1, 1] from there)."""
+    return 2.0 if config.unclamped_moves else 1.0
+
+
 def tied_speculars(global_bases: torch.Tensor) -> torch.Tensor:
     """(N,) whether each of the global bases (N, 10) (signed space) keeps its specular's three
     channels moving together: those whose specular is not a metal's (``METAL_SPREAD``)."""
@@ -231,7 +244,7 @@ def _fit_drjit(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
                                        target[0].numpy(), light.numpy(), geometry.flash_intensity(fov, convention),
                                        convention, extent, config.steps, config.lr, config.prior, progress=bar,
                                        pixel_weights=pixel_weights[0].numpy(), tied=tied.numpy(),
-                                       encoded_loss=config.encoded_loss)
+                                       encoded_loss=config.encoded_loss, bound=basis_bound(config))
     return torch.from_numpy(refined)[None], losses
 
 
@@ -285,8 +298,8 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
             if bool(tied.any()):
                 global_bases.grad = tie_specular_gradient(global_bases.grad, tied)
             optimizer.step()
-            with torch.no_grad():  # keep the bases inside the signed space the network predicts in
-                global_bases.clamp_(-1.0, 1.0)
+            with torch.no_grad():
+                global_bases.clamp_(-basis_bound(config), basis_bound(config))
             losses.append(loss.item())
     finally:
         torch.set_num_threads(threads)

@@ -439,6 +439,21 @@ class DeepBasisOutput:
         return DeepBasisOutput.from_bases(self.weights, global_bases.to(self.weights), self.deviations,
                                           keep_bases=False, error=self.error, extras=self.extras)
 
+    def unsaturated(self) -> DeepBasisOutput:
+        """This output with each basis's reflectance deviations cut to what its global basis leaves
+        inside the signed space, deviation' = clamp(global + deviation, -1, 1) - global: the same
+        maps, but a change of a global basis now moves every pixel where that basis weighs. The
+        local unit often pushes a basis past a bound (its deviations saturate near +-1); there a
+        change of the global basis moves nothing, so a refinement that may move only some of a
+        basis's channels tints the specular (``RefineConfig.unclamped_moves``)."""
+        if self.deviations is None or self.global_bases is None:
+            return self
+        reflectance = constants.REFLECTANCE
+        start = self.global_bases[:, :, reflectance, None, None].to(self.deviations)
+        deviations = self.deviations.clone()
+        deviations[:, :, reflectance] = (start + self.deviations[:, :, reflectance]).clamp(-1.0, 1.0) - start
+        return replace(self, deviations=deviations)
+
     def crop(self, height: int, width: int) -> DeepBasisOutput:
         """The top-left height x width pixels of every per-pixel tensor."""
         def crop(value):

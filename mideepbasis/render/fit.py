@@ -77,6 +77,9 @@ class FitInputs:
     lr: mi.Float
     """1: Adam's learning rate."""
 
+    bound: mi.Float
+    """1: the largest magnitude of a global basis value (``RefineConfig.unclamped_moves``: 2)."""
+
     prior: mi.Float
     """1: the weight of the mean L1 pull of the bases toward the predicted ones."""
 
@@ -92,7 +95,7 @@ class FitInputs:
     gradients replaced by their mean), else 0."""
 
     DRJIT_STRUCT = {"weights": list, "deviations": mi.Float, "predicted": mi.Float, "movable": mi.Float,
-                    "target": mi.Color3f, "light": mi.Point3f, "intensity": mi.Float, "lr": mi.Float,
+                    "target": mi.Color3f, "light": mi.Point3f, "intensity": mi.Float, "lr": mi.Float, "bound": mi.Float,
                     "prior": mi.Float, "normal": mi.Vector3f, "pixel_weights": mi.Float, "tied": mi.Float}
 
 
@@ -208,7 +211,7 @@ def _step(free: mi.Float, first_moment: mi.Float, second_moment: mi.Float, step:
     bias_correction1 = 1 - dr.power(beta1, step)
     bias_correction2_sqrt = dr.sqrt(1 - dr.power(beta2, step))
     denominator = dr.sqrt(second_moment) / bias_correction2_sqrt + ADAM_EPS
-    free = dr.clip(dr.detach(free) - data.lr / bias_correction1 * first_moment / denominator, -1.0, 1.0)
+    free = dr.clip(dr.detach(free) - data.lr / bias_correction1 * first_moment / denominator, -data.bound, data.bound)
     return free, first_moment, second_moment, dr.detach(loss) + prior_term
 
 
@@ -226,7 +229,8 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      target: np.ndarray, light: np.ndarray, intensity: float, convention: str, extent: float,
                      steps: int, lr: float, prior: float, progress=None,
                      every_channel: bool = False, pixel_weights: np.ndarray | None = None,
-                     tied: np.ndarray | None = None, encoded_loss: bool = False) -> tuple[np.ndarray, list[float]]:
+                     tied: np.ndarray | None = None, encoded_loss: bool = False,
+                     bound: float = 1.0) -> tuple[np.ndarray, list[float]]:
     """Adam on the global bases so the plugin's render of the blend matches the photo.
 
     Args:
@@ -240,7 +244,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
             normals stay (the quicker path's reference in the tests); pixel_weights: (r, r) each
             pixel's weight in the loss, mean 1 (None: all 1); tied: (N,) whether each basis's three
             specular channels move together (None: none); encoded_loss: compare sRGB-encoded
-            values (the target given linear).
+            values (the target given linear); bound: the largest magnitude of a basis value.
 
     Returns:
         ((N, 10) the refined bases, the loss at every step).
@@ -255,7 +259,8 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      predicted=as_float(predicted), movable=as_float(np.tile(movable, bases)),
                      target=mi.Color3f(*[as_float(channel) for channel in target]),
                      light=mi.Point3f(*[float(x) for x in np.asarray(light).reshape(3)]),
-                     intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), prior=mi.Float(float(prior)),
+                     intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), bound=mi.Float(float(bound)),
+                     prior=mi.Float(float(prior)),
                      normal=dr.zeros(mi.Vector3f, 1),
                      pixel_weights=as_float(np.ones((size, size)) if pixel_weights is None else pixel_weights),
                      tied=as_float(np.zeros((bases, constants.BASIS_CHANNELS)) if tied is None else
@@ -267,7 +272,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     free = mi.Float(data.predicted)
     first_moment, second_moment = dr.zeros(mi.Float, count), dr.zeros(mi.Float, count)
     # Evaluated inputs (not literals): every call then matches the one recording.
-    dr.make_opaque(free, first_moment, second_moment, data.light, data.intensity, data.lr, data.prior)
+    dr.make_opaque(free, first_moment, second_moment, data.light, data.intensity, data.lr, data.bound, data.prior)
     losses = []
     for step in (progress or (lambda steps: steps))(range(1, steps + 1)):
         free, first_moment, second_moment, loss = _frozen_step(free, first_moment, second_moment, mi.Float(step),

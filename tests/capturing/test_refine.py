@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from mideepbasis.capturing import CaptureConfig, Capturer, Photo, RefineConfig, predict, refine_global_bases
 from mideepbasis.evaluation import flash_photos
 from mideepbasis.model.checkpoint import load_model, save_checkpoint
-from mideepbasis.model.network import DeepBasisNet, normalize_basis_normals, preset, to_maps
+from mideepbasis.model.network import DeepBasisNet, DeepBasisOutput, normalize_basis_normals, preset, to_maps
 from mideepbasis.render import render_flash
 
 from .helpers import OracleModel, maps_by_hand, material
@@ -61,9 +61,10 @@ def test_refinement_can_keep_the_normals_and_be_pulled_to_the_prediction():
     # An L1 pull of weight w stops a basis parameter from moving once the photo term's gradient on
     # it falls below w / 10 (the mean over 10 channels); a pull far stronger than any photo gradient
     # leaves the bases within the Adam step size of where they started (the refinement keeps them
-    # inside the signed space [-1, 1]).
+    # inside [-1, 1], the signed space, or [-2, 2] with unclamped_moves: ``basis_bound``).
     pulled = refine(prior=1000.0)
-    assert (pulled - predicted.clamp(-1.0, 1.0)).abs().max() < 0.05
+    assert (pulled - predicted).abs().max() < 0.05
+    assert (refine(prior=1000.0, unclamped_moves=False) - predicted.clamp(-1.0, 1.0)).abs().max() < 0.05
     assert (free - predicted).abs().max() > 0.2
 
 
@@ -74,7 +75,7 @@ REFINE_LOOP_TOLERANCES = {"bases": 2e-3, "loss": 1e-5}
 @pytest.mark.parametrize("options", [{"normals": False}, {"normals": True}, {"normals": False, "prior": 0.5},
                                      {"skip_clipped": True, "achromatic_specular": True},
                                      {"encoded_loss": True, "prior": 0.2},
-                                     {"normals": True, "achromatic_specular": True}])
+                                     {"normals": True, "achromatic_specular": True}, {"unclamped_moves": False}])
 def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
     from mideepbasis.capturing import refine as refinement
 
@@ -107,6 +108,52 @@ def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
     if config.achromatic_specular:  # the specular moved by one shift in all three channels
         shift = (bases - predicted)[0, 0, 7:]
         assert shift.abs().max() > 0.01 and (shift - shift.mean()).abs().max() < 1e-4
+
+
+def single_channel_speculars(size: int = 32) -> DeepBasisOutput:
+    """A grey specular as the trained network often makes it: three bases of equal weight, each
+    giving one channel (global -0.99 plus a deviation of +0.5) and pushed past zero in the other two
+    (global -0.5 plus a deviation of -1). Flat, diffuse 0.2, roughness 0.4; specular 0.085 grey."""
+    global_bases = torch.zeros(1, 3, 10)
+    global_bases[..., 2], global_bases[..., 3:6], global_bases[..., 6], global_bases[..., 7:] = 1.0, -0.6, -0.2, -0.5
+    deviations = torch.zeros(1, 3, 10, size, size)
+    for basis in range(3):
+        global_bases[0, basis, 7 + basis] = -0.99
+        deviations[0, basis, 7:] = -1.0
+        deviations[0, basis, 7 + basis] = 0.5
+    return DeepBasisOutput.from_bases(torch.full((1, 3, size, size), 1.0 / 3.0), global_bases, deviations)
+
+
+def test_unsaturated_deviations_keep_the_maps_and_let_every_pixel_of_a_basis_move():
+    output = single_channel_speculars()
+    unsaturated = output.unsaturated()
+    torch.testing.assert_close(unsaturated.compose(unsaturated.global_bases).maps, output.maps, atol=1e-6, rtol=0)
+    assert abs(float(output.maps[0, 7:].mean()) - 0.085) < 1e-3
+    raised = output.global_bases.clone()
+    raised[0, 0, 8] += 0.3  # basis 0's green: pushed past -1 by its deviation
+    # Before: the change moves no pixel; after: every pixel, by its weight times the change.
+    torch.testing.assert_close(output.compose(raised).signed_maps, output.signed_maps)
+    moved = unsaturated.compose(raised).signed_maps - output.signed_maps
+    torch.testing.assert_close(moved[0, 8], torch.full_like(moved[0, 8], 0.1), atol=1e-6, rtol=0)
+    assert moved[0, torch.arange(10) != 8].abs().max() < 1e-6
+
+
+def test_a_specular_of_single_channel_bases_stays_grey_when_refined_towards_a_dimmer_one():
+    """Real photos whose highlight is dimmer than predicted used to end with a green specular: the
+    refinement lowered the channels it could move and left the one whose global basis sat at the
+    bound (``RefineConfig.unclamped_moves``)."""
+    output = single_channel_speculars()
+    truth = output.maps.clone()
+    truth[:, 7:] = 0.03
+    photos, lights = flash_photos(truth, torch.tensor([[0.2, 0.1]]))
+    config = RefineConfig(steps=150, resolution=32, lr=0.02, moving_maps=("specular",))
+    unsaturated = output.unsaturated()
+    refined = unsaturated.compose(refine_global_bases(unsaturated, photos[0], lights[0], 45.0, "physical",
+                                                      config=config)[0]).maps[0, 7:].mean(dim=(1, 2))
+    assert (refined - 0.03).abs().max() < 0.01 and float(refined.max() - refined.min()) < 0.01
+    clamped = output.compose(refine_global_bases(output, photos[0], lights[0], 45.0, "physical",
+                                                 config=replace(config, unclamped_moves=False))[0]).maps
+    assert float(clamped[0, 7:].mean(dim=(1, 2)).min()) > 0.07  # each channel held by a basis at the bound
 
 
 def test_speculars_tie_unless_a_metal_s():
