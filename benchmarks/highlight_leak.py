@@ -158,12 +158,15 @@ def main() -> None:
     parser.add_argument("--refine-steps", type=int, default=None,
                         help="the captures' refinement steps (0: the network's maps alone; default: capture's)")
     parser.add_argument("--refine-prior", type=float, default=None, help="the captures' refinement pull (capture's default)")
+    parser.add_argument("--refine-clamped", action="store_true",
+                        help="the refinement's global bases inside [-1, 1] (RefineConfig.unclamped_moves off)")
     args = parser.parse_args()
 
     model = load_model(args.model)
     fov, convention = constants.DEFAULT_FOV_DEG, model.config.convention
     refine = CaptureConfig().refine
-    changes = {key: value for key, value in (("steps", args.refine_steps), ("prior", args.refine_prior)) if value is not None}
+    changes = {key: value for key, value in (("steps", args.refine_steps), ("prior", args.refine_prior),
+                                             ("unclamped_moves", False if args.refine_clamped else None)) if value is not None}
     capturer = Capturer(model, CaptureConfig(refine=dataclasses.replace(refine, **changes)))
     report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE, "refine_changes": changes}
     real, rows = real_photos(capturer, args.real)

@@ -41,6 +41,7 @@ def variants(steps: int) -> dict[str, RefineConfig]:
         f"d, r, s only, {steps} steps": RefineConfig(steps=steps),
         f"d, r, s only, {half} steps": RefineConfig(steps=half),
         f"d, r, s only, {quarter} steps": RefineConfig(steps=quarter),
+        f"d, r, s only, {quarter} steps, clamped": RefineConfig(steps=quarter, unclamped_moves=False),
         f"d, r, s only + prior 0.1, {half} steps": RefineConfig(steps=half, prior=0.1),
     }
 
