@@ -41,6 +41,11 @@ PHONE_FINE_TUNE = [
     "--synthesis-jpeg-quality", "70,95", "--synthesis-tilt-deg", "4", "--synthesis-plain-probability", "0.4",
     "--train-only", "encoder,weight_decoder,global_unit"]
 
+def without(flags: list[str], *dropped: str) -> list[str]:
+    """``flags`` less the named tokens (a flag and its value)."""
+    return [flag for flag in flags if flag not in dropped]
+
+
 #: Variant name -> extra ``train`` flags. All share COMMON.
 VARIANTS = {
     "map": ["--render-weight", "0"],
@@ -72,9 +77,12 @@ VARIANTS = {
     # ... with the local unit trained too, so that it adapts to the encoder it is fed by.
     "phone_highlight_local": [*PHONE_FINE_TUNE, "--highlight-weight", "8",
                               "--train-only", "encoder,weight_decoder,global_unit,local_unit"],
+    # ... without the view input (the shipped model's 9 input channels): does the view input let the
+    # network fit a photo under a wrong flash, which biases the light search?
+    "phone_highlight_noview": [*without(PHONE_FINE_TUNE, "--network-extra-inputs", "view"), "--highlight-weight", "8"],
     # ... with fewer colour levers: a colour cast in the diffuse and a strong white-balance error
     # make the diffuse colour of a photo ambiguous.
-    "phone_highlight_less_colour": [*(flag for flag in PHONE_FINE_TUNE if flag != "--synthesis-cast-in-diffuse"),
+    "phone_highlight_less_colour": [*without(PHONE_FINE_TUNE, "--synthesis-cast-in-diffuse"),
                                     "--synthesis-white-balance-sigma", "0.04", "--highlight-weight", "8"],
 }
 
