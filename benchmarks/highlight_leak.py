@@ -1,6 +1,6 @@
 """How much of the flash's highlight a model puts into its diffuse map.
 
-    .venv/bin/python benchmarks/highlight_leak.py [--model CKPT] [-o benchmarks/results/highlight_leak.json]
+    .venv/bin/python benchmarks/highlight_leak.py [--model CKPT] [-o benchmarks/results/highlight_leak.json] [capture options]
 
 On the shared test set (``evaluate``'s default protocol: seeded hand-held flashes, light known,
 the network at its training resolution) and on the bundled demo photo (its true light), for each
@@ -30,7 +30,6 @@ a row each: photo, diffuse, normal, roughness, specular, the re-render under the
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 from pathlib import Path
 
@@ -41,6 +40,7 @@ from common import RESULTS, SHARED_TEST, shared_predictions, write_report
 
 from mideepbasis import constants, geometry
 from mideepbasis.capturing import CaptureConfig, Capturer
+from mideepbasis.configs import add_config_arguments, config_from_arguments, given_fields
 from mideepbasis.material import Material
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.render.api import example_capture_dir
@@ -155,20 +155,15 @@ def main() -> None:
     parser.add_argument("--scenes", type=Path, default=Path("runs/phone_scenes"),
                         help="calibrated phone scenes with their truth (mideepbasis data scenes)")
     parser.add_argument("--skip-shared", action="store_true", help="leave out the shared set and the demo")
-    parser.add_argument("--refine-steps", type=int, default=None,
-                        help="the captures' refinement steps (0: the network's maps alone; default: capture's)")
-    parser.add_argument("--refine-prior", type=float, default=None, help="the captures' refinement pull (capture's default)")
-    parser.add_argument("--refine-clamped", action="store_true",
-                        help="the refinement's global bases inside [-1, 1] (RefineConfig.unclamped_moves off)")
+    # The captures' options, as `mideepbasis capture` takes them (--refine-steps 0: the network's maps alone).
+    add_config_arguments(parser, CaptureConfig, describe=False)
     args = parser.parse_args()
 
     model = load_model(args.model)
     fov, convention = constants.DEFAULT_FOV_DEG, model.config.convention
-    refine = CaptureConfig().refine
-    changes = {key: value for key, value in (("steps", args.refine_steps), ("prior", args.refine_prior),
-                                             ("unclamped_moves", False if args.refine_clamped else None)) if value is not None}
-    capturer = Capturer(model, CaptureConfig(refine=dataclasses.replace(refine, **changes)))
-    report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE, "refine_changes": changes}
+    capturer = Capturer(model, config_from_arguments(CaptureConfig, args))
+    report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE,
+              "capture_changes": given_fields(args, CaptureConfig)}
     real, rows = real_photos(capturer, args.real)
     report["real_photos"] = {**summary(real), "per_photo": real}
     print(f"real photos ({len(real)}): mean |imprint| {report['real_photos']['mean_abs_imprint']:.4f} (signed "

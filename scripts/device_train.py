@@ -41,8 +41,9 @@ PHONE_FINE_TUNE = [
     "--synthesis-jpeg-quality", "70,95", "--synthesis-tilt-deg", "4", "--synthesis-plain-probability", "0.4",
     "--train-only", "encoder,weight_decoder,global_unit"]
 
+
 def without(flags: list[str], *dropped: str) -> list[str]:
-    """``flags`` less the named tokens (a flag and its value)."""
+    """``flags`` less every token named (say, a flag and its value)."""
     return [flag for flag in flags if flag not in dropped]
 
 
@@ -103,13 +104,13 @@ def halved(source: Path, target: Path) -> None:
     """Write ``source``'s weights to ``target`` in float16, as ``ship_model.py --half`` does to every
     part (``load_model`` casts them back): a float32 checkpoint of the shipped network is over
     the 16 MiB a file that comes back from the device machine."""
+    from ship_model import shipped_metadata  # this script's folder is on sys.path
+
     from mideepbasis.model.checkpoint import load_model, read_checkpoint, save_checkpoint
 
     model = load_model(source)
     document, _ = read_checkpoint(source)
-    metadata = {key: value for key, value in document.items() if key in ("training", "photo_decoding", "fov_deg")}
-    metadata["training"] = {**metadata.get("training", {}), "shipped_from": str(source),
-                            "float16_parts": [name for name, _ in model.named_children()]}
+    metadata = shipped_metadata(document, str(source), [name for name, _ in model.named_children()])
     save_checkpoint(target, model.half(), metadata=metadata)
 
 

@@ -52,6 +52,14 @@ def blend_weights(model: torch.nn.Module, other: torch.nn.Module, weight: float,
                            if value.is_floating_point() and blended(name) else value for name, value in state.items()})
 
 
+def shipped_metadata(document: dict, source: str, half: list[str]) -> dict:
+    """What a shipped file keeps of its checkpoint's ``document``: the training record (with the
+    file it came from and its float16 parts), the photo decoding and the field of view."""
+    metadata = {key: value for key, value in document.items() if key in ("training", "photo_decoding", "fov_deg")}
+    metadata["training"] = {**metadata.get("training", {}), "shipped_from": source, "float16_parts": half}
+    return metadata
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", type=Path)
@@ -77,11 +85,10 @@ def main() -> None:
         model.config = dataclasses.replace(model.config, normal_unit_octaves=tuple(args.normal_unit_octaves))
     for part in args.half:
         getattr(model, part).half()
-    metadata = {key: value for key, value in document.items() if key in ("training", "photo_decoding", "fov_deg")}
-    training = metadata.get("training", {})
     # Re-shipping the shipped file (to change how it runs) keeps the record of where it came from.
-    source = training.get("shipped_from", str(args.checkpoint)) if args.checkpoint.resolve() == TARGET else str(args.checkpoint)
-    metadata["training"] = {**training, "shipped_from": source, "float16_parts": list(args.half)}
+    source = (document.get("training", {}).get("shipped_from", str(args.checkpoint))
+              if args.checkpoint.resolve() == TARGET else str(args.checkpoint))
+    metadata = shipped_metadata(document, source, list(args.half))
     if args.blend_with is not None:
         metadata["training"]["blended_with"] = {"model": str(args.blend_with), "weight_of_shipped_from": args.blend_weight,
                                                 "parts": args.blend_parts or "all"}

@@ -278,6 +278,7 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
             return torch.cat([normals, blend(weights, bases)], dim=1)
 
     optimizer = SmallAdam(global_bases, lr=config.lr)
+    bound = basis_bound(config)
     compared = encoded(target) if config.encoded_loss else target
     losses = []
     # The tensors here are small: waking torch's worker threads for every op costs more than it saves.
@@ -299,7 +300,7 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
                 global_bases.grad = tie_specular_gradient(global_bases.grad, tied)
             optimizer.step()
             with torch.no_grad():
-                global_bases.clamp_(-basis_bound(config), basis_bound(config))
+                global_bases.clamp_(-bound, bound)
             losses.append(loss.item())
     finally:
         torch.set_num_threads(threads)

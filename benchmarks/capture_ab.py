@@ -1,0 +1,51 @@
+"""Capture time with capture's defaults against other capture options, alternated in one process.
+
+    .venv/bin/python benchmarks/capture_ab.py --no-refine-unclamped-moves [--repeats 8]
+
+Captures the bundled example photo with capture's defaults (A) and with the capture options given
+(B; any of ``mideepbasis capture``'s, as ``CaptureConfig`` reads them), A and B taken in turn after
+one untimed capture each (which records drjit's refinement step), and prints the median wall time
+of each and their ratio: a change is judged by the ratio, never by seconds from another machine.
+Writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import mideepbasis  # noqa: F401
+from mideepbasis.capturing import CaptureConfig, Capturer
+from mideepbasis.configs import add_config_arguments, config_from_arguments, given_fields
+from mideepbasis.model.checkpoint import load_model
+from mideepbasis.render.api import example_capture_dir
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=8)
+    parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
+    add_config_arguments(parser, CaptureConfig, describe=False)
+    args = parser.parse_args()
+    model, photo = load_model(args.model), example_capture_dir() / "photo.jpg"
+    changes = ", ".join(f"{name} {value}" for name, value in given_fields(args, CaptureConfig).items()) or "the same"
+    capturers = {"A (defaults)": Capturer(model, CaptureConfig()),
+                 f"B ({changes})": Capturer(model, config_from_arguments(CaptureConfig, args))}
+    for capturer in capturers.values():
+        capturer.capture(photo)
+    seconds = {name: [] for name in capturers}
+    for _ in range(args.repeats):
+        for name, capturer in capturers.items():
+            start = time.perf_counter()
+            capturer.capture(photo)
+            seconds[name].append(time.perf_counter() - start)
+    medians = {name: statistics.median(values) for name, values in seconds.items()}
+    for name, median in medians.items():
+        print(f"{name}: median {median:.3f} s of {args.repeats}")
+    first, second = medians.values()
+    print(f"A / B: {first / second:.3f}")
+
+
+if __name__ == "__main__":
+    main()
