@@ -42,9 +42,20 @@ PHONE_FINE_TUNE = [
     "--train-only", "encoder,weight_decoder,global_unit"]
 
 
-def without(flags: list[str], *dropped: str) -> list[str]:
-    """``flags`` less every token named (say, a flag and its value)."""
-    return [flag for flag in flags if flag not in dropped]
+def without(flags: list[str], *options: str) -> list[str]:
+    """``flags`` less each of ``options`` and the values that follow it (the tokens up to the
+    next ``--`` flag)."""
+    kept, dropping = [], False
+    for token in flags:
+        if token.startswith("--"):
+            dropping = token in options
+        if not dropping:
+            kept.append(token)
+    return kept
+
+
+#: The phone fine-tune without the falloff levers.
+PHONE_NO_FALLOFF = without(PHONE_FINE_TUNE, "--synthesis-vignetting", "--synthesis-flash-cone")
 
 
 #: Variant name -> extra ``train`` flags. All share COMMON.
@@ -80,11 +91,25 @@ VARIANTS = {
                               "--train-only", "encoder,weight_decoder,global_unit,local_unit"],
     # ... without the view input (the shipped model's 9 input channels): does the view input let the
     # network fit a photo under a wrong flash, which biases the light search?
-    "phone_highlight_noview": [*without(PHONE_FINE_TUNE, "--network-extra-inputs", "view"), "--highlight-weight", "8"],
+    "phone_highlight_noview": [*without(PHONE_FINE_TUNE, "--network-extra-inputs"), "--highlight-weight", "8"],
     # ... with fewer colour levers: a colour cast in the diffuse and a strong white-balance error
     # make the diffuse colour of a photo ambiguous.
     "phone_highlight_less_colour": [*without(PHONE_FINE_TUNE, "--synthesis-cast-in-diffuse"),
                                     "--synthesis-white-balance-sigma", "0.04", "--highlight-weight", "8"],
+    # Without the falloff levers (vignetting, flash cone), which bias the light search (MODEL.md).
+    "phone_no_falloff_highlight": [*PHONE_NO_FALLOFF, "--highlight-weight", "8"],
+    # ... with the local unit trained too.
+    "phone_no_falloff_highlight_local": [*PHONE_NO_FALLOFF, "--highlight-weight", "8",
+                                         "--train-only", "encoder,weight_decoder,global_unit,local_unit"],
+    # ... with the highlight weighted twice as much.
+    "phone_no_falloff_highlight16_local": [*PHONE_NO_FALLOFF, "--highlight-weight", "16",
+                                           "--train-only", "encoder,weight_decoder,global_unit,local_unit"],
+    # ... with fewer colour levers.
+    "phone_no_falloff_highlight_less_colour": [*without(PHONE_NO_FALLOFF, "--synthesis-cast-in-diffuse"),
+                                               "--synthesis-white-balance-sigma", "0.04", "--highlight-weight", "8"],
+    # ... with more plain batches (60 %), closer to the renderer the light search fits with.
+    "phone_no_falloff_highlight_plain60": [*PHONE_NO_FALLOFF, "--highlight-weight", "8",
+                                           "--synthesis-plain-probability", "0.6"],
 }
 
 COMMON = ["--preset", "compact", "--data", "procedural", "--render-backend", "torch", "--bf16",
