@@ -1,9 +1,10 @@
 """Capture time with capture's defaults against other capture options, alternated in one process.
 
     .venv/bin/python benchmarks/capture_ab.py --no-refine-unclamped-moves [--repeats 8]
+    .venv/bin/python benchmarks/capture_ab.py --b-model runs/OTHER.safetensors      # two models, the same options
 
 Captures the bundled example photo with capture's defaults (A) and with the capture options given
-(B; any of ``mideepbasis capture``'s, as ``CaptureConfig`` reads them), A and B taken in turn after
+(B; any of ``mideepbasis capture``'s, as ``CaptureConfig`` reads them, and ``--b-model``), A and B taken in turn after
 one untimed capture each (which records drjit's refinement step), and prints the median wall time
 of each and their ratio: a change is judged by the ratio, never by seconds from another machine.
 Writes nothing.
@@ -26,12 +27,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=8)
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
+    parser.add_argument("--b-model", default=None, help="B's checkpoint (default: --model's)")
     add_config_arguments(parser, CaptureConfig, describe=False)
     args = parser.parse_args()
     model, photo = load_model(args.model), example_capture_dir() / "photo.jpg"
-    changes = ", ".join(f"{name} {value}" for name, value in given_fields(args, CaptureConfig).items()) or "the same"
+    changes = [f"{name} {value}" for name, value in given_fields(args, CaptureConfig).items()]
+    changes += [f"model {args.b_model}"] if args.b_model else []
+    b_model = load_model(args.b_model) if args.b_model else model
     capturers = {"A (defaults)": Capturer(model, CaptureConfig()),
-                 f"B ({changes})": Capturer(model, config_from_arguments(CaptureConfig, args))}
+                 f"B ({', '.join(changes) or 'the same'})": Capturer(b_model, config_from_arguments(CaptureConfig, args))}
     for capturer in capturers.values():
         capturer.capture(photo)
     seconds = {name: [] for name in capturers}
