@@ -89,7 +89,7 @@ VARIANTS = {
     # ... with the local unit trained too, so that it adapts to the encoder it is fed by.
     "phone_highlight_local": [*PHONE_FINE_TUNE, "--highlight-weight", "8",
                               "--train-only", "encoder,weight_decoder,global_unit,local_unit"],
-    # ... without the view input (the shipped model's 9 input channels): does the view input let the
+    # ... without the view input (stage 11's 9 input channels): does the view input let the
     # network fit a photo under a wrong flash, which biases the light search?
     "phone_highlight_noview": [*without(PHONE_FINE_TUNE, "--network-extra-inputs"), "--highlight-weight", "8"],
     # ... with fewer colour levers: a colour cast in the diffuse and a strong white-balance error
