@@ -223,7 +223,8 @@ def test_a_kill_at_any_instant_leaves_the_old_result_or_the_new_one(tmp_path, ti
     subprocess.run(command("capture", photos[1], "-o", out, "--overwrite", "--model", tiny_model, *QUICK),
                    check=True, capture_output=True)
     duration = time.perf_counter() - started
-    instants = [("time", duration * (0.15 + 1.0 * i / 19)) for i in range(20)] + [("hook", "staged"),
+    # Up to twice the measured duration: on a loaded machine the later captures run slower than the timed one.
+    instants = [("time", duration * (0.15 + 2.0 * i / 19)) for i in range(20)] + [("hook", "staged"),
                                                                                     ("hook", "exchanged")]
     outcomes = []
     for index, (kind, when) in enumerate(instants):
