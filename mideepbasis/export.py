@@ -124,15 +124,20 @@ def scene_xml(offset: tuple[float, float], fov: float, resolution: int, conventi
 EXPORT_METAL_F0 = 0.08
 
 
+def export_pbr(material) -> dict:
+    """The metallic-roughness maps every export writes: ``Material.to_pbr`` at ``EXPORT_METAL_F0``."""
+    return material.to_pbr(EXPORT_METAL_F0)
+
+
 def gltf_material(material, folder: Path, name: str = "captured material", pbr: dict | None = None) -> dict:
     """Write the glTF textures into ``folder`` and return the glTF 2.0 document of a 2 x 2 quad
     lying on the ground (+Y up) with the material: metallic-roughness plus KHR_materials_specular.
 
     Our +x is glTF +X, our +y (the top of the image) is glTF -Z; the normal texture is the
     material's ``normal.png`` (glTF normal maps are +Y up, as ours). ``pbr``: the material's
-    ``to_pbr()``, when the caller has it already.
+    ``export_pbr``, when the caller has it already.
     """
-    pbr = pbr if pbr is not None else material.to_pbr(EXPORT_METAL_F0)
+    pbr = pbr if pbr is not None else export_pbr(material)
     base = pbr["base_color"]
     metallic, roughness = pbr["metallic"], pbr["roughness"]
     zeros = torch.zeros_like(metallic)
@@ -209,7 +214,7 @@ def write_height(folder: Path, material) -> dict:
 def dielectric_f0(material, pbr: dict | None = None) -> float:
     """The mean F0 of a material's dielectric part: its specular's grey level weighted by 1 -
     metallic (``to_pbr``), what a reader with one index of refraction (USD) can show."""
-    metallic = (pbr or material.to_pbr(EXPORT_METAL_F0))["metallic"]
+    metallic = (pbr or export_pbr(material))["metallic"]
     dielectric = (1.0 - metallic).clamp(min=0.0)
     weight = float(dielectric.sum())
     if weight <= 0:
@@ -220,7 +225,7 @@ def dielectric_f0(material, pbr: dict | None = None) -> float:
 def specular_color(material, pbr: dict | None = None) -> tuple[torch.Tensor, float]:
     """The specular colour of the metallic-roughness exports (glTF KHR_materials_specular, MaterialX):
     (the texture (3, H, W) in [0, 1], its factor >= 1), with dielectric F0 = 0.04 x factor x texture."""
-    metallic = (pbr or material.to_pbr(EXPORT_METAL_F0))["metallic"]
+    metallic = (pbr or export_pbr(material))["metallic"]
     # In place: each (3, H, W) temporary is 0.2 GB at 4096 px.
     specular = (material.specular * (1 - metallic)).add_(constants.DIELECTRIC_F0 * metallic)
     factor = max(1.0, float(specular.max()) / constants.DIELECTRIC_F0)
@@ -342,7 +347,7 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
         write_bytes(staging / "light.json", _json_bytes(light))
         (staging / "scene.xml").write_text(scene_xml(result.offset, result.fov, material.width,
                                                      material.convention))
-        pbr = material.to_pbr(EXPORT_METAL_F0)  # once, for the glTF and the MaterialX export
+        pbr = export_pbr(material)  # once, for the glTF and the MaterialX export
         gltf = gltf_material(material, staging, pbr=pbr)
         write_bytes(staging / "material.gltf", _json_bytes(gltf))
         # The glTF's specular factor, not a second conversion (0.1 s at 1024 px).

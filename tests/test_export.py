@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from mideepbasis.errors import InputError
-from mideepbasis.export import EXPORT_METAL_F0, gltf_material
+from mideepbasis.export import export_pbr, gltf_material
 from mideepbasis.imageio import read_image
 from mideepbasis.material import Material
 
@@ -22,7 +22,7 @@ def test_gltf_textures_hold_the_metallic_roughness_conversion(tmp_path):
                         torch.rand(1, size, size, generator=generator), torch.full((3, size, size), 0.05))
     document = gltf_material(material, tmp_path)
     json.dumps(document)  # JSON-serialisable as it is
-    pbr = material.to_pbr(EXPORT_METAL_F0)
+    pbr = export_pbr(material)
     base = read_image(tmp_path / "base_color.png", decode_srgb=True)
     packed = read_image(tmp_path / "metallic_roughness.png")
     assert torch.allclose(torch.from_numpy(base).permute(2, 0, 1), pbr["base_color"], atol=2 / 255)
