@@ -55,7 +55,7 @@ from mideepbasis.data.procedural import FAMILIES, generate
 from mideepbasis.evaluation import (DETAIL_BAND, above_band, evaluation_offsets, flash_photos, high_band_energy, map_rmse,
                                     random_lights_and_views, rerender)
 from mideepbasis.model.checkpoint import load_model
-from mideepbasis.resampling import downsample, upsample_bilinear
+from mideepbasis.resampling import downsample, upsample_maps
 
 #: First seed of the relief materials (training never draws seeds this small: ``search_prior``).
 HELD_OUT_SEED = 5 * 10**8
@@ -101,14 +101,6 @@ def true_maps(material: dict, size: int) -> tuple[torch.Tensor, str]:
     if material["kind"] == "flat textured":
         maps[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
     return maps, generated.provenance["variant"]
-
-
-def upsample_maps(maps: torch.Tensor, size: int) -> torch.Tensor:
-    """(B, 10, h, w) bilinearly to (B, 10, size, size), the normals renormalised."""
-    if maps.shape[-1] == size:
-        return maps
-    big = upsample_bilinear(maps, size, size)
-    return torch.cat([geometry.unit_vectors(big[:, constants.NORMAL], dim=1), big[:, constants.REFLECTANCE]], dim=1)
 
 
 def centre_crop(image: torch.Tensor) -> np.ndarray:

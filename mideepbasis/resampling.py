@@ -37,6 +37,16 @@ def downsample_maps(maps: torch.Tensor, size: int | tuple[int, int]) -> torch.Te
     return torch.cat([unit_vectors(small[:, constants.NORMAL], dim=1), small[:, constants.REFLECTANCE]], dim=1)
 
 
+def upsample_maps(maps: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
+    """Maps (B, 10, h, w) bilinearly to size x size (or (height, width)), their normals renormalised:
+    a smaller capture's answer, plainly upsampled."""
+    height, width = (size, size) if isinstance(size, int) else size
+    if maps.shape[-2:] == (height, width):
+        return maps
+    big = upsample_bilinear(maps, height, width)
+    return torch.cat([unit_vectors(big[:, constants.NORMAL], dim=1), big[:, constants.REFLECTANCE]], dim=1)
+
+
 def separable_filter(image: torch.Tensor, kernel: torch.Tensor, padding: str = "reflect") -> torch.Tensor:
     """(B, C, H, W) convolved by ``kernel`` (2k + 1,) along the rows and then the columns, the
     edges extended by torch's ``padding`` (``reflect``, ``replicate``, or ``constant``: zeros)."""

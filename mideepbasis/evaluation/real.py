@@ -272,12 +272,20 @@ GREY_ROW, LAMBERTIAN_ROW, TRUTH_ROW = "flat grey", "Lambertian: photo / falloff"
 PAPER_ROW = "the paper's DeepBasis (Table 2)"
 
 
+def upsampled_row(resolution: int) -> str:
+    """The row of a capture at ``resolution`` px whose maps are upsampled to the working resolution."""
+    return f"capture at {resolution} px, upsampled"
+
+
 def materials_of_scene(capturer, scene: CalibratedScene, index: int, photo: torch.Tensor,
-                       truth: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                       truth: torch.Tensor | None = None, upsampled_from: int | None = None) -> dict[str, torch.Tensor]:
     """The materials (10, H, W) each row re-renders, captured from photo ``index`` (linear, (3, H,
     W), as capture loads it) of the scene: the capture with and without its refinement (one
-    search, one prediction), the baselines, and the scene's ``truth`` (``true_maps``) where given."""
+    search, one prediction), the baselines, the scene's ``truth`` (``true_maps``) where given, and
+    where ``upsampled_from`` is, the whole capture at that working resolution [pixels], its maps
+    upsampled to the photo's size."""
     from ..material import Material
+    from ..resampling import upsample_maps
 
     capturer = capturer.with_config(fov=scene.fov(index))
     loaded = capturer.load(scene.photos[index])
@@ -292,6 +300,9 @@ def materials_of_scene(capturer, scene: CalibratedScene, index: int, photo: torc
     materials = {CAPTURE_ROW: as_written(refined.maps), UNREFINED_ROW: as_written(prediction.maps),
                  GREY_ROW: constant_material(height, width, **FLAT_GREY),
                  LAMBERTIAN_ROW: lambertian_baseline(photo, scene, index, capturer.convention)}
+    if upsampled_from is not None:
+        small = capturer.with_config(resolution=upsampled_from).capture(scene.photos[index]).material.to_tensor()
+        materials[upsampled_row(upsampled_from)] = as_written(upsample_maps(small[None], (height, width)))
     if truth is not None:
         materials[TRUTH_ROW] = truth
     return materials
@@ -316,8 +327,9 @@ def scene_photos(scene: CalibratedScene, resolution: int | str) -> torch.Tensor:
     return torch.stack([load_photo(path, fov=scene.fov(0), resolution=resolution)[0] for path in scene.photos])
 
 
-def evaluate_scene(capturer, scene: CalibratedScene, inputs: list[int]) -> dict:
-    """Every row's scores on one scene, averaged over the input photos ``inputs``:
+def evaluate_scene(capturer, scene: CalibratedScene, inputs: list[int], upsampled_from: int | None = None) -> dict:
+    """Every row's scores on one scene, averaged over the input photos ``inputs`` (``upsampled_from``:
+    ``materials_of_scene``):
     {"rows": {row: {figure: value}}, "renders": {row: (N, 3, H, W) sRGB} of the first input,
     "photos": (N, 3, H, W) linear}."""
     from .metrics import map_rmse
@@ -329,7 +341,8 @@ def evaluate_scene(capturer, scene: CalibratedScene, inputs: list[int]) -> dict:
     for index in inputs:
         if not 0 <= index < len(photos):
             raise InputError(f"{scene.name}: no photo {index:02d} to capture from ({len(photos)} photos)")
-        for row, maps in materials_of_scene(capturer, scene, index, photos[index], truth).items():
+        for row, maps in materials_of_scene(capturer, scene, index, photos[index], truth,
+                                                 upsampled_from).items():
             scores = score_rerenders(maps, photos, scene, index, capturer.convention)
             figures = {"rmse": scores.rmse, "flip": scores.flip, "ssim": scores.ssim,
                        "rmse_least_squares": scores.rmse_least_squares}
@@ -374,7 +387,7 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
     for scene in tqdm(scenes, desc="scenes", unit="scene", disable=not progress):
         inputs = list(range(len(scene.photos))) if config.input_photo == "all" else [int(config.input_photo)]
         try:
-            results[scene.name] = evaluate_scene(capturer, scene, inputs)
+            results[scene.name] = evaluate_scene(capturer, scene, inputs, config.upsampled_from)
         except InputError as error:
             notes.append(f"skipped: {error}")
     if not results:

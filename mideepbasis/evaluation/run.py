@@ -14,6 +14,7 @@ import torch
 from .. import constants
 from ..capturing.refine import RefineConfig
 from ..configs import positive_int
+from ..errors import InputError
 from .metrics import LPIPS, light_error_deg, map_rmse, rerender_rmse, score, summary_scores, trivial_baseline
 from .protocol import (RERENDER_COUNT, ROUGHNESS_GROUPS, evaluation_offsets, flash_photos, load_evaluation_materials,
                        random_lights_and_views, resize_maps)
@@ -111,6 +112,10 @@ class EvaluationConfig:
     """Resample the materials to this size first [pixels] (None: as stored); ``calibrated``: the
     capture's working resolution, at which the photos are compared (None: capture's)."""
 
+    upsampled_from: int | None = field(default=None, metadata={"parse": positive_int})
+    """``calibrated``: also a row captured at this working resolution [pixels] whose maps are
+    upsampled to ``resolution`` and compared there: a sharper capture against plain upsampling."""
+
     environment: tuple[str, ...] = field(default=(), metadata={"parse": environments,
                                                                 "metavar": "studio,sunsky[,FILE.exr]"})
     """Also compare path-traced renders under these environments (``studio``, ``sunsky``,
@@ -196,6 +201,8 @@ def run_evaluation(config: EvaluationConfig, progress: bool = True) -> dict:
     from ..outputs import OutputFolder
 
     started = time.perf_counter()
+    if config.upsampled_from is not None and config.data_format != "calibrated":
+        raise InputError(f"{config.data}: --upsampled-from applies to calibrated scenes only (the real-photo protocol)")
     # Checked and locked before the work; written beside and swapped in whole at the end.
     with OutputFolder(config.out, overwrite=config.overwrite, inputs=[config.data], kind="evaluation") as folder:
         if config.data_format == "calibrated":

@@ -99,25 +99,30 @@ def test_bad_scene_files_are_one_line(tmp_path, damage, message):
     assert "\n" not in str(raised.value) and str(folder) in str(raised.value)
 
 
-def test_the_command_runs_the_protocol_and_skips_a_bad_scene(tmp_path, capsys):
+def tiny_model(folder):
+    """An untrained tiny model's checkpoint in ``folder``."""
     import mideepbasis.model.checkpoint as checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
 
     torch.manual_seed(0)
-    model = checkpoint.save_checkpoint(tmp_path / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())
+    return checkpoint.save_checkpoint(folder / "tiny.safetensors", DeepBasisNet(preset("tiny")).eval())
+
+
+def test_the_command_runs_the_protocol_and_skips_a_bad_scene(tmp_path, capsys):
+    model = tiny_model(tmp_path)
     data = tmp_path / "scenes"
     write_scene(data / "good", known_material(64), positions_cm())
     write_scene(data / "broken", known_material(64), positions_cm())
     (data / "broken" / "02.png").unlink()
     out = tmp_path / "out"
     assert cli.main(["evaluate", "--data", str(data), "--model", str(model), "-o", str(out), "--symmetries", "1",
-                     "--resolution", "64"]) == 0
+                     "--resolution", "64", "--upsampled-from", "32"]) == 0
     printed = capsys.readouterr().out
     assert "photo 02.png is missing" in printed and "1 scenes" in printed
     summary = json.loads((out / "summary.json").read_text())
     rows = summary["rows"]
     assert set(rows) == {real.CAPTURE_ROW, real.UNREFINED_ROW, real.GREY_ROW, real.LAMBERTIAN_ROW, real.TRUTH_ROW,
-                         real.PAPER_ROW}
+                         real.PAPER_ROW, real.upsampled_row(32)}
     assert rows[real.TRUTH_ROW]["rmse"] < 0.004 and rows[real.PAPER_ROW]["rmse"] == real.PAPER_REAL_RMSE
     assert all(0 <= rows[row]["ssim"] <= 1 and rows[row]["flip"] >= 0 for row in rows if row != real.PAPER_ROW)
     assert (out / "sheets" / "good.png").is_file() and "| capture (default) |" in (out / "table.md").read_text()
@@ -136,3 +141,36 @@ def test_validation_scenes_are_calibrated_scenes_with_their_truth(tmp_path):
     # The same seeds give the same scenes.
     again = make_scenes(tmp_path / "again", 1, size=32, progress=False)[0]
     assert (again / "04.png").read_bytes() == (folders[0] / "04.png").read_bytes()
+
+
+def test_a_smaller_capture_upsampled_is_scored_at_the_working_resolution(tmp_path, monkeypatch):
+    # The capture at 32 px is stood in by the true material area-averaged to 32 px: upsampled
+    # back, it loses only the fine texture, and its row scores between the truth and flat grey.
+    from mideepbasis.capturing import CaptureConfig, Capturer
+    from mideepbasis.resampling import downsample_maps
+
+    material = known_material(64)
+    scene = real.load_scene(write_scene(tmp_path / "scene", material, positions_cm()))
+    photos = real.scene_photos(scene, 64)
+
+    class Captured:
+        def __init__(self, size):
+            self.material = Material.from_tensor(downsample_maps(material.to_tensor()[None], size)[0])
+
+    monkeypatch.setattr(Capturer, "capture", lambda self, image, progress=False: Captured(self.config.resolution))
+    capturer = Capturer(tiny_model(tmp_path), CaptureConfig(resolution=64, symmetries=1))
+    upsampled = real.materials_of_scene(capturer, scene, 0, photos[0], upsampled_from=32)[real.upsampled_row(32)]
+    assert upsampled.shape == (10, 64, 64)
+    truth_rmse = real.score_rerenders(material.to_tensor(), photos, scene, 0, constants.DEFAULT_CONVENTION).rmse
+    rmse = real.score_rerenders(upsampled, photos, scene, 0, constants.DEFAULT_CONVENTION).rmse
+    grey = real.score_rerenders(real.constant_material(64, 64, **real.FLAT_GREY), photos, scene, 0,
+                                constants.DEFAULT_CONVENTION).rmse
+    assert truth_rmse < 0.004 < rmse < grey
+
+
+def test_upsampled_from_is_refused_on_synthetic_data(tmp_path):
+    from mideepbasis.evaluation import EvaluationConfig, run_evaluation
+
+    (tmp_path / "data").mkdir()
+    with pytest.raises(InputError, match="calibrated scenes only"):
+        run_evaluation(EvaluationConfig(data=str(tmp_path / "data"), out=str(tmp_path / "out"), upsampled_from=32))
