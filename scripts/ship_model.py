@@ -16,6 +16,7 @@ what the fine-tune learnt and much of what the start knew (Wortsman et al. 2022,
 fine-tuning of zero-shot models"). Input channels the other model lacks count as zero weights
 there, as a fine-tune widened from it starts (``train.trainer.widen_inputs``). ``--blend-parts``
 blends only the named parts: a unit retrained on top of a blend keeps its new weights.
+``--part-weight PART=W`` gives a part its own share.
 """
 
 from __future__ import annotations
@@ -33,23 +34,44 @@ TARGET = Path(__file__).resolve().parents[1] / "mideepbasis" / "models" / SHIPPE
 
 
 def blend_weights(model: torch.nn.Module, other: torch.nn.Module, weight: float,
-                  parts: tuple[str, ...] | None = None) -> None:
+                  parts: tuple[str, ...] | None = None, part_weights: dict[str, float] | None = None) -> None:
     """Set ``model``'s weights to ``weight x model + (1 - weight) x other`` (in place), ``other``'s
     missing input channels as zeros; integer buffers stay ``model``'s, and so do the parts
-    (top-level modules) not in ``parts`` when it is given."""
+    (top-level modules) not in ``parts`` when it is given. ``part_weights`` gives some parts
+    their own ``weight``."""
     state, start = model.state_dict(), other.state_dict()
     if other.config.input_channels != model.config.input_channels:
         start = widen_inputs(start, state, other.config.input_channels)
     known = {name.split(".")[0] for name in state}
-    unknown = sorted(set(parts or ()) - known)
-    if unknown:
-        raise SystemExit(f"ship_model: --blend-parts: no part {unknown} in the network (its parts: {sorted(known)})")
+    part_weights = part_weights or {}
+    for option, named in (("--blend-parts", parts or ()), ("--part-weight", part_weights)):
+        unknown = sorted(set(named) - known)
+        if unknown:
+            raise SystemExit(f"ship_model: {option}: no part {unknown} in the network (its parts: {sorted(known)})")
 
-    def blended(name: str) -> bool:
-        return parts is None or name.split(".")[0] in parts
+    def share(name: str) -> float | None:  # the model's share of the blend, None: not blended
+        part = name.split(".")[0]
+        if parts is not None and part not in parts:
+            return None
+        return part_weights.get(part, weight)
 
-    model.load_state_dict({name: weight * value + (1.0 - weight) * start[name].to(value.dtype)
-                           if value.is_floating_point() and blended(name) else value for name, value in state.items()})
+    blended = {}
+    for name, value in state.items():
+        own = share(name) if value.is_floating_point() else None
+        blended[name] = value if own is None else own * value + (1.0 - own) * start[name].to(value.dtype)
+    model.load_state_dict(blended)
+
+
+def part_weight(text: str) -> tuple[str, float]:
+    """``PART=W`` for ``--part-weight``: W in [0, 1]."""
+    part, _, value = text.partition("=")
+    try:
+        weight = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected PART=W, got {text!r}") from None
+    if not part or not 0.0 <= weight <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected PART=W with W in [0, 1], got {text!r}")
+    return part, weight
 
 
 def shipped_metadata(document: dict, source: str, half: list[str]) -> dict:
@@ -71,6 +93,8 @@ def main() -> None:
     parser.add_argument("--blend-weight", type=float, default=0.5, help="the checkpoint's share of the blend")
     parser.add_argument("--blend-parts", nargs="+", default=None,
                         help="blend only these parts (top-level modules); the others stay the checkpoint's")
+    parser.add_argument("--part-weight", type=part_weight, nargs="+", default=(), metavar="PART=W",
+                        help="the checkpoint's share of the blend in these parts, instead of --blend-weight")
     parser.add_argument("-o", "--output", type=Path, default=TARGET)
     args = parser.parse_args()
     if not 0.0 <= args.blend_weight <= 1.0:
@@ -79,7 +103,7 @@ def main() -> None:
     model = load_model(args.checkpoint)
     if args.blend_with is not None:
         blend_weights(model, load_model(args.blend_with), args.blend_weight,
-                      None if args.blend_parts is None else tuple(args.blend_parts))
+                      None if args.blend_parts is None else tuple(args.blend_parts), dict(args.part_weight))
     document, _ = read_checkpoint(args.checkpoint)
     if args.normal_unit_octaves is not None:
         model.config = dataclasses.replace(model.config, normal_unit_octaves=tuple(args.normal_unit_octaves))
@@ -91,7 +115,8 @@ def main() -> None:
     metadata = shipped_metadata(document, source, list(args.half))
     if args.blend_with is not None:
         metadata["training"]["blended_with"] = {"model": str(args.blend_with), "weight_of_shipped_from": args.blend_weight,
-                                                "parts": args.blend_parts or "all"}
+                                                "parts": args.blend_parts or "all",
+                                                **({"part_weights": dict(args.part_weight)} if args.part_weight else {})}
     save_checkpoint(args.output, model, metadata=metadata)
     size = args.output.stat().st_size / 2**20
     print(f"wrote {args.output} ({size:.1f} MiB)")

@@ -345,3 +345,37 @@ def test_ship_model_blends_only_the_named_parts(tmp_path, monkeypatch):
     with pytest.raises(SystemExit, match="no part"):
         runpy.run_path(str(script), run_name="__main__")
     assert not (tmp_path / "other.safetensors").exists()
+
+
+def test_ship_model_gives_named_parts_their_own_share(tmp_path, monkeypatch):
+    import runpy
+    import sys
+    from pathlib import Path
+
+    from mideepbasis.model.checkpoint import load_model, read_checkpoint, save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(7)
+    start_network, tuned_network = DeepBasisNet(preset("tiny")), DeepBasisNet(preset("tiny"))
+    start = save_checkpoint(tmp_path / "start.safetensors", start_network)
+    tuned = save_checkpoint(tmp_path / "tuned.safetensors", tuned_network)
+    shipped = tmp_path / "shipped.safetensors"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
+    monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--blend-weight", "0.7",
+                                      "--part-weight", "encoder=0.5", "global_unit=1", "-o", str(shipped)])
+    runpy.run_path(str(script), run_name="__main__")
+    blended = load_model(shipped).state_dict()
+    shares = {"encoder": 0.5, "global_unit": 1.0}
+    for name, value in tuned_network.state_dict().items():
+        share = shares.get(name.split(".")[0], 0.7)
+        other = start_network.state_dict()[name]
+        expected = share * value + (1 - share) * other if value.is_floating_point() else value
+        torch.testing.assert_close(blended[name], expected, atol=1e-6, rtol=1e-6, msg=name)
+    document, _ = read_checkpoint(shipped)
+    assert document["training"]["blended_with"]["part_weights"] == shares
+    for bad in ("encoder=1.5", "encoder", "decoder=0.5"):
+        monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--part-weight", bad,
+                                          "-o", str(tmp_path / "other.safetensors")])
+        with pytest.raises(SystemExit):
+            runpy.run_path(str(script), run_name="__main__")
+    assert not (tmp_path / "other.safetensors").exists()
