@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pickle
+from pathlib import Path
 
 import pytest
 import torch
@@ -207,11 +208,19 @@ def test_other_safetensors_files_are_refused(tmp_path):
         load_model(tmp_path / "absent.safetensors")
 
 
-def test_shipping_a_checkpoint_keeps_its_weights_halves_the_parts_named_and_may_set_the_octaves(tmp_path, monkeypatch):
+SHIP_MODEL = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
+
+
+def run_ship_model(monkeypatch, *arguments) -> None:
+    """``scripts/ship_model.py ARGUMENTS`` in this process."""
     import runpy
     import sys
-    from pathlib import Path
 
+    monkeypatch.setattr(sys, "argv", [str(SHIP_MODEL), *map(str, arguments)])
+    runpy.run_path(str(SHIP_MODEL), run_name="__main__")
+
+
+def test_shipping_a_checkpoint_keeps_its_weights_halves_the_parts_named_and_may_set_the_octaves(tmp_path, monkeypatch):
     from mideepbasis.model.checkpoint import WEIGHTS_PREFIX, load_model, read_checkpoint, save_checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
 
@@ -219,10 +228,7 @@ def test_shipping_a_checkpoint_keeps_its_weights_halves_the_parts_named_and_may_
     network = DeepBasisNet(preset("tiny", normal_unit_width=4, normal_unit_blocks=(1, 1, 1)))
     source = save_checkpoint(tmp_path / "run.safetensors", network, metadata={"training": {"steps": 7}})
     shipped = tmp_path / "shipped.safetensors"
-    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
-    monkeypatch.setattr(sys, "argv", [str(script), str(source), "--half", "normal_unit",
-                                      "--normal-unit-octaves", "1", "0.5", "-o", str(shipped)])
-    runpy.run_path(str(script), run_name="__main__")
+    run_ship_model(monkeypatch, source, "--half", "normal_unit", "--normal-unit-octaves", "1", "0.5", "-o", shipped)
     model = load_model(shipped)
     assert model.config.normal_unit_octaves == (1.0, 0.5)
     document, tensors = read_checkpoint(shipped)
@@ -276,10 +282,6 @@ def test_the_replaced_checkpoint_is_kept_beside_when_asked(tmp_path):
 
 
 def test_ship_model_blends_a_widened_fine_tune_with_its_start(tmp_path, monkeypatch):
-    import runpy
-    import sys
-    from pathlib import Path
-
     from mideepbasis.model.checkpoint import load_model, read_checkpoint, save_checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
 
@@ -289,10 +291,7 @@ def test_ship_model_blends_a_widened_fine_tune_with_its_start(tmp_path, monkeypa
     start = save_checkpoint(tmp_path / "start.safetensors", start_network)
     tuned = save_checkpoint(tmp_path / "tuned.safetensors", tuned_network, metadata={"training": {"steps": 3}})
     shipped = tmp_path / "shipped.safetensors"
-    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
-    monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--blend-weight", "0.25",
-                                      "-o", str(shipped)])
-    runpy.run_path(str(script), run_name="__main__")
+    run_ship_model(monkeypatch, tuned, "--blend-with", start, "--blend-weight", "0.25", "-o", shipped)
     blended = load_model(shipped).state_dict()
     narrow, widened = start_network.config.input_channels, []
     for name, value in tuned_network.state_dict().items():
@@ -312,23 +311,23 @@ def test_ship_model_blends_a_widened_fine_tune_with_its_start(tmp_path, monkeypa
                                                     "parts": "all"}
 
 
-def test_ship_model_blends_only_the_named_parts(tmp_path, monkeypatch):
-    import runpy
-    import sys
-    from pathlib import Path
-
-    from mideepbasis.model.checkpoint import load_model, read_checkpoint, save_checkpoint
+def tiny_checkpoints(folder, seed: int, *names: str) -> list:
+    """(network, checkpoint path) of a random tiny network for each name, saved in ``folder``."""
+    from mideepbasis.model.checkpoint import save_checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
 
-    torch.manual_seed(6)
-    start_network, tuned_network = DeepBasisNet(preset("tiny")), DeepBasisNet(preset("tiny"))
-    start = save_checkpoint(tmp_path / "start.safetensors", start_network)
-    tuned = save_checkpoint(tmp_path / "tuned.safetensors", tuned_network)
+    torch.manual_seed(seed)
+    networks = [DeepBasisNet(preset("tiny")) for _ in names]
+    return [(network, save_checkpoint(folder / f"{name}.safetensors", network)) for network, name in zip(networks, names)]
+
+
+def test_ship_model_blends_only_the_named_parts(tmp_path, monkeypatch):
+    from mideepbasis.model.checkpoint import load_model, read_checkpoint
+
+    (start_network, start), (tuned_network, tuned) = tiny_checkpoints(tmp_path, 6, "start", "tuned")
     shipped = tmp_path / "shipped.safetensors"
-    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
-    monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--blend-weight", "0.8",
-                                      "--blend-parts", "encoder", "global_unit", "-o", str(shipped)])
-    runpy.run_path(str(script), run_name="__main__")
+    run_ship_model(monkeypatch, tuned, "--blend-with", start, "--blend-weight", "0.8",
+                   "--blend-parts", "encoder", "global_unit", "-o", shipped)
     blended, parts_seen = load_model(shipped).state_dict(), set()
     for name, value in tuned_network.state_dict().items():
         part = name.split(".")[0]
@@ -340,30 +339,19 @@ def test_ship_model_blends_only_the_named_parts(tmp_path, monkeypatch):
     assert {"encoder", "global_unit", "weight_decoder", "local_unit"} <= parts_seen
     document, _ = read_checkpoint(shipped)
     assert document["training"]["blended_with"]["parts"] == ["encoder", "global_unit"]
-    monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--blend-parts", "decoder",
-                                      "-o", str(tmp_path / "other.safetensors")])
     with pytest.raises(SystemExit, match="no part"):
-        runpy.run_path(str(script), run_name="__main__")
+        run_ship_model(monkeypatch, tuned, "--blend-with", start, "--blend-parts", "decoder",
+                       "-o", tmp_path / "other.safetensors")
     assert not (tmp_path / "other.safetensors").exists()
 
 
 def test_ship_model_gives_named_parts_their_own_share(tmp_path, monkeypatch):
-    import runpy
-    import sys
-    from pathlib import Path
+    from mideepbasis.model.checkpoint import load_model, read_checkpoint
 
-    from mideepbasis.model.checkpoint import load_model, read_checkpoint, save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, preset
-
-    torch.manual_seed(7)
-    start_network, tuned_network = DeepBasisNet(preset("tiny")), DeepBasisNet(preset("tiny"))
-    start = save_checkpoint(tmp_path / "start.safetensors", start_network)
-    tuned = save_checkpoint(tmp_path / "tuned.safetensors", tuned_network)
+    (start_network, start), (tuned_network, tuned) = tiny_checkpoints(tmp_path, 7, "start", "tuned")
     shipped = tmp_path / "shipped.safetensors"
-    script = Path(__file__).resolve().parents[2] / "scripts" / "ship_model.py"
-    monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--blend-weight", "0.7",
-                                      "--part-weight", "encoder=0.5", "global_unit=1", "-o", str(shipped)])
-    runpy.run_path(str(script), run_name="__main__")
+    run_ship_model(monkeypatch, tuned, "--blend-with", start, "--blend-weight", "0.7",
+                   "--part-weight", "encoder=0.5", "global_unit=1", "-o", shipped)
     blended = load_model(shipped).state_dict()
     shares = {"encoder": 0.5, "global_unit": 1.0}
     for name, value in tuned_network.state_dict().items():
@@ -374,8 +362,7 @@ def test_ship_model_gives_named_parts_their_own_share(tmp_path, monkeypatch):
     document, _ = read_checkpoint(shipped)
     assert document["training"]["blended_with"]["part_weights"] == shares
     for bad in ("encoder=1.5", "encoder", "decoder=0.5"):
-        monkeypatch.setattr(sys, "argv", [str(script), str(tuned), "--blend-with", str(start), "--part-weight", bad,
-                                          "-o", str(tmp_path / "other.safetensors")])
         with pytest.raises(SystemExit):
-            runpy.run_path(str(script), run_name="__main__")
+            run_ship_model(monkeypatch, tuned, "--blend-with", start, "--part-weight", bad,
+                           "-o", tmp_path / "other.safetensors")
     assert not (tmp_path / "other.safetensors").exists()
