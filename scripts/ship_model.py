@@ -97,6 +97,8 @@ def main() -> None:
                         help="the checkpoint's share of the blend in these parts, instead of --blend-weight")
     parser.add_argument("-o", "--output", type=Path, default=TARGET)
     args = parser.parse_args()
+    if args.part_weight and args.blend_with is None:
+        parser.error("--part-weight needs --blend-with")
     if not 0.0 <= args.blend_weight <= 1.0:
         parser.error(f"--blend-weight must lie in [0, 1], got {args.blend_weight}")
 

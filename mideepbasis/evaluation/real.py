@@ -335,14 +335,17 @@ def evaluate_scene(capturer, scene: CalibratedScene, inputs: list[int], upsample
     from .metrics import map_rmse
 
     photos = scene_photos(scene, capturer.config.resolution)
+    if upsampled_from is not None and upsampled_from >= photos.shape[-1]:
+        raise InputError(f"{scene.name}: --upsampled-from {upsampled_from} is not below the working resolution "
+                         f"({photos.shape[-1]} px)")
     truth = None if scene.truth is None else true_maps(scene, photos.shape[-1])  # read once
     rows: dict[str, dict[str, list[float]]] = {}
     renders = {}
     for index in inputs:
         if not 0 <= index < len(photos):
             raise InputError(f"{scene.name}: no photo {index:02d} to capture from ({len(photos)} photos)")
-        for row, maps in materials_of_scene(capturer, scene, index, photos[index], truth,
-                                                 upsampled_from).items():
+        materials = materials_of_scene(capturer, scene, index, photos[index], truth, upsampled_from)
+        for row, maps in materials.items():
             scores = score_rerenders(maps, photos, scene, index, capturer.convention)
             figures = {"rmse": scores.rmse, "flip": scores.flip, "ssim": scores.ssim,
                        "rmse_least_squares": scores.rmse_least_squares}

@@ -166,6 +166,8 @@ def test_a_smaller_capture_upsampled_is_scored_at_the_working_resolution(tmp_pat
     grey = real.score_rerenders(real.constant_material(64, 64, **real.FLAT_GREY), photos, scene, 0,
                                 constants.DEFAULT_CONVENTION).rmse
     assert truth_rmse < 0.004 < rmse < grey
+    with pytest.raises(InputError, match="not below the working resolution"):
+        real.evaluate_scene(capturer, scene, [0], upsampled_from=64)
 
 
 def test_upsampled_from_is_refused_on_synthetic_data(tmp_path):

@@ -365,4 +365,6 @@ def test_ship_model_gives_named_parts_their_own_share(tmp_path, monkeypatch):
         with pytest.raises(SystemExit):
             run_ship_model(monkeypatch, tuned, "--blend-with", start, "--part-weight", bad,
                            "-o", tmp_path / "other.safetensors")
+    with pytest.raises(SystemExit):  # nothing to blend with
+        run_ship_model(monkeypatch, tuned, "--part-weight", "encoder=0.5", "-o", tmp_path / "other.safetensors")
     assert not (tmp_path / "other.safetensors").exists()
