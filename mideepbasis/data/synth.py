@@ -389,6 +389,7 @@ class TrainingBatch:
         inputs, varied_inputs: (B, 9, H, W) network inputs of the photos of M and of M + xi.
         photos, varied_photos: (B, 3, H, W) the linear photos themselves.
         fov: the field of view the photos were taken with [deg] (``SynthesisConfig.fov_range``).
+        plain: whether ``SynthesisConfig.plain_probability`` drew the plain camera for this batch.
     """
 
     maps: torch.Tensor
@@ -401,6 +402,7 @@ class TrainingBatch:
     photos: torch.Tensor
     varied_photos: torch.Tensor
     fov: float = constants.DEFAULT_FOV_DEG
+    plain: bool = False
     extras: dict = field(default_factory=dict)
 
 
@@ -419,7 +421,8 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
     batch, factor = maps.shape[0], config.supersample
     if maps.shape[-2] % factor or maps.shape[-1] % factor:
         raise ValueError(f"maps of {maps.shape[-2]}x{maps.shape[-1]} cannot be supersampled by {factor}")
-    if config.plain_probability > 0 and torch.rand((), generator=generator).item() < config.plain_probability:
+    plain = config.plain_probability > 0 and torch.rand((), generator=generator).item() < config.plain_probability
+    if plain:
         config = config.plain()
     fov = sample_fov(generator, config)
     variation = sample_variation(batch, generator, config.max_rotation, config.max_shift)
@@ -460,4 +463,4 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
     inputs = encode_inputs(photos, both_lights, fov, config.convention, extra_inputs=extra_inputs)
     return TrainingBatch(maps=maps, varied_maps=varied, variation=variation, offsets=offsets, lights=lights,
                          inputs=inputs[:batch], varied_inputs=inputs[batch:], photos=photos[:batch],
-                         varied_photos=photos[batch:], fov=fov)
+                         varied_photos=photos[batch:], fov=fov, plain=plain)

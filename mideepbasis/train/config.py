@@ -182,6 +182,17 @@ class TrainConfig:
     highlight covers a few percent of a photo, so the plain loss hardly minds a highlight baked
     into the diffuse map (issue 11's demo smudge); 0: off."""
 
+    anchor: str | None = None
+    """A checkpoint whose answers the run keeps on the plain camera's batches (those that
+    ``synthesis.plain_probability`` draws): there the loss adds ``anchor_weight`` times the
+    supervised L1 between this network's maps and the anchor's, as "learning without forgetting"
+    does. A fine-tune towards phone photos then learns them from the other batches without
+    drifting from what the anchor does on the plain camera (the shared test set's). Costs one
+    forward pass of the anchor on those batches. None: off."""
+
+    anchor_weight: float = 1.0
+    """Weight of the anchor's L1 (``anchor``) against the supervised loss's 1."""
+
     def __post_init__(self):
         # Resolve the network and the synthesis now, so that what is stored is what ran.
         if self.network is None or isinstance(self.network, dict):
@@ -237,6 +248,12 @@ class TrainConfig:
         if self.highlight_weight < 0 or (self.highlight_weight and self.normal_pool):
             raise ValueError(f"highlight_weight {self.highlight_weight} must be 0, or positive without normal_pool "
                              "(the normal unit's loss has no diffuse map)")
+        if self.anchor is not None:
+            if self.anchor_weight <= 0:
+                raise ValueError(f"anchor_weight {self.anchor_weight} must be positive")
+            if self.normal_pool or self.local_pool or not self.synthesis.plain_probability:
+                raise ValueError("anchor keeps the anchor's answers on plain batches: it needs the whole network "
+                                 "(no normal_pool or local_pool) and synthesis.plain_probability > 0")
         if self.local_pool_keep and not (self.local_pool and self.init):
             raise ValueError("local_pool_keep keeps maps as the init gives them: it needs local_pool and init")
 

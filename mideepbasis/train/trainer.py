@@ -126,6 +126,13 @@ class Trainer:
             from ..model.checkpoint import load_model
 
             self.kept_from = load_model(config.init).to(self.device).eval().requires_grad_(False)
+        self.anchor = None
+        if config.anchor:
+            from ..model.checkpoint import load_model
+
+            self.anchor = load_model(config.anchor).to(self.device).eval().requires_grad_(False)
+            if self.anchor.config != self.model.config:
+                raise InputError(f"{config.anchor}: the anchor's network configuration differs from this run's")
         if resume:
             self._resume()
         if self.world_size > 1:
@@ -270,11 +277,24 @@ class Trainer:
             sup = supervised_loss(output, target, config.normal_weight, diffuse_weights=diffuse_weights)
             vc = torch.zeros((), device=self.device)
         saturation = saturation_penalty(output.extras["decoder_raw"].float())
-        loss, losses = self._with_rendering_loss(sup + config.vc_weight * vc + config.saturation_weight * saturation,
+        anchored = self._anchor_loss(original if use_vc else output, batch)
+        loss, losses = self._with_rendering_loss(sup + config.vc_weight * vc + config.saturation_weight * saturation
+                                                 + config.anchor_weight * anchored,
                                                  (original if use_vc else output).maps, target)
         norm = self._optimise(loss)
+        anchor_log = {"l_anchor": anchored.item()} if self.anchor is not None else {}
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
-                **losses, "grad_norm": norm.item()}
+                **anchor_log, **losses, "grad_norm": norm.item()}
+
+    def _anchor_loss(self, output: DeepBasisOutput, batch: TrainingBatch) -> torch.Tensor:
+        """The supervised L1 between ``output`` (of ``batch.inputs``) and the anchor's maps of the
+        same photos, on a plain batch (``TrainConfig.anchor``); zero on the others and without an anchor."""
+        if self.anchor is None or not batch.plain:
+            return torch.zeros((), device=self.device)
+        with torch.no_grad(), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
+            answer = self.anchor(batch.inputs.to(self.device), batch.lights.to(self.device), fov=batch.fov)
+        return supervised_loss(output, answer.maps.float(), self.config.normal_weight,
+                               signed_target=answer.signed_maps.float())
 
     def _with_rendering_loss(self, loss: torch.Tensor, predicted: torch.Tensor, target: torch.Tensor
                              ) -> tuple[torch.Tensor, dict]:
