@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from mideepbasis.errors import InputError
-from mideepbasis.export import export_pbr, gltf_material
+from mideepbasis.export import EXPORT_METAL_F0, export_pbr, gltf_material
 from mideepbasis.imageio import read_image
 from mideepbasis.material import Material
 
@@ -32,6 +32,23 @@ def test_gltf_textures_hold_the_metallic_roughness_conversion(tmp_path):
     factor = document["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0]
     colour = read_image(tmp_path / "specular_color.png", decode_srgb=True)
     assert 0.04 * factor * colour.mean() == pytest.approx(0.05, rel=0.02)
+
+
+def test_gltf_gives_back_the_specular_of_a_partly_metallic_material(tmp_path):
+    """A glTF reader's F0 is (1 - metallic) x 0.04 x factor x colour + metallic x base colour; for a
+    material made from metallic-roughness maps split where the export splits it, that is its specular."""
+    generator = torch.Generator().manual_seed(3)
+    size = 8
+    base = 0.3 + 0.6 * torch.rand(3, size, size, generator=generator)
+    metallic = torch.linspace(0.2, 0.9, size * size).view(1, size, size)
+    material = Material.from_pbr(base, metallic, torch.full((1, size, size), 0.4), dielectric_f0=EXPORT_METAL_F0)
+    document = gltf_material(material, tmp_path)
+    factor = document["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0]
+    colour = torch.from_numpy(read_image(tmp_path / "specular_color.png", decode_srgb=True)).permute(2, 0, 1)
+    read_base = torch.from_numpy(read_image(tmp_path / "base_color.png", decode_srgb=True)).permute(2, 0, 1)
+    read_metallic = torch.from_numpy(read_image(tmp_path / "metallic_roughness.png")[..., 2])
+    f0 = (1 - read_metallic) * 0.04 * factor * colour + read_metallic * read_base
+    assert torch.allclose(f0, material.specular, atol=0.01), (f0 - material.specular).abs().max()
 
 
 def test_an_occupied_output_folder_is_refused(tmp_path):
