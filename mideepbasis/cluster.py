@@ -128,7 +128,9 @@ def _run(photos: list[Path], out: Path, address: str, model, config, options: Sa
         futures = {client.submit(_capture_task, str(photo.resolve()), str((out / photo.stem).resolve()), token,
                                  key=f"capture-{token}-{index}", retries=RETRIES, pure=False): photo
                    for index, photo in enumerate(photos)}
-        for future in as_completed(futures):
+        # The client's own loop: as_completed otherwise waits on the default client's, which differs
+        # where the caller holds a client of its own ("bound to a different event loop").
+        for future in as_completed(futures, loop=client.loop):
             item, photo = future.result(), futures[future]  # the photo as given, not as the worker saw it
             yield BatchItem(photo, out / photo.stem, item.error, item.offset_angle_deg, item.seconds,
                             list(item.notes), item.repeated)
