@@ -457,20 +457,35 @@ class Material:
 _PBR_BAND_ROWS = 256
 
 
+def metallic_share(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0: float) -> torch.Tensor:
+    """The metallic (1, H, W) in [0, 1] of ``Material.to_pbr`` for diffuse and specular (3, H, W),
+    computed in their dtype: 0 where the specular's luminance is at most ``dielectric_f0``."""
+    weights = torch.tensor(constants.LUMINANCE_WEIGHTS, dtype=diffuse.dtype, device=diffuse.device).reshape(3, 1, 1)
+    lum_d, lum_s = (weights * diffuse).sum(0, keepdim=True), (weights * specular).sum(0, keepdim=True)
+    excess = (lum_s - dielectric_f0).clamp(min=0)
+    b = lum_d + lum_s - 2 * dielectric_f0
+    denominator = b + torch.sqrt(b * b + 4 * dielectric_f0 * excess)
+    metallic = torch.where(excess > 1e-9, 2 * excess / denominator.clamp(min=1e-12), torch.zeros_like(b))
+    return metallic.clamp(0, 1)
+
+
+def grey_dielectric_specular(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0: float) -> torch.Tensor:
+    """The specular (3, H, W) with each pixel's colour kept in proportion to its metallic share
+    (``metallic_share`` at ``dielectric_f0``) and grey of the same luminance otherwise: a
+    dielectric's F0 has no colour, only a metal's does."""
+    weights = torch.tensor(constants.LUMINANCE_WEIGHTS, dtype=specular.dtype, device=specular.device).reshape(3, 1, 1)
+    luminance = (weights * specular).sum(0, keepdim=True)
+    metallic = metallic_share(diffuse, specular, dielectric_f0)
+    return (luminance + metallic * (specular - luminance)).clamp(0, 1)
+
+
 def _metallic_roughness(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0: float
                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """(base colour (3, h, w), metallic (1, h, w)) of diffuse and specular (3, h, w): the
     arithmetic of ``Material.to_pbr``, in float64."""
     d, s = diffuse.double(), specular.double()
-    weights = torch.tensor(constants.LUMINANCE_WEIGHTS, dtype=torch.float64).reshape(3, 1, 1)
-    lum_d, lum_s = (weights * d).sum(0, keepdim=True), (weights * s).sum(0, keepdim=True)
     f0 = float(dielectric_f0)
-    excess = (lum_s - f0).clamp(min=0)
-    b = lum_d + lum_s - 2 * f0
-    denominator = b + torch.sqrt(b * b + 4 * f0 * excess)
-    metallic = torch.where(excess > 1e-9, 2 * excess / denominator.clamp(min=1e-12), torch.zeros_like(b))
-    metallic = metallic.clamp(0, 1)
-
+    metallic = metallic_share(d, s, f0)
     eps = 1e-9
     from_diffuse = (d / (1 - metallic).clamp(min=eps)).clamp(0, 1)
     from_specular = ((s - f0 * (1 - metallic)) / metallic.clamp(min=eps)).clamp(0, 1)

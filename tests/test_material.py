@@ -430,3 +430,24 @@ def test_pbr_hand_computed_and_dielectrics():
         Material.from_pbr(torch.rand(3, 4, 4), torch.full((1, 4, 4), 1.5), torch.rand(1, 4, 4))
     with pytest.raises(MaterialError, match=r"base_color must have shape \(3, H, W\)"):
         Material.from_pbr(torch.rand(4, 4, 3), torch.zeros(1, 4, 4), torch.rand(1, 4, 4))
+
+
+def test_grey_dielectric_specular_keeps_a_metals_colour_and_greys_a_dielectrics():
+    from mideepbasis.material import grey_dielectric_specular
+
+    weights = torch.tensor(constants.LUMINANCE_WEIGHTS).view(3, 1, 1)
+    g = torch.Generator().manual_seed(4)
+    base = 0.2 + 0.8 * torch.rand(3, 8, 8, generator=g)
+    metal = Material.from_pbr(base, torch.ones(1, 8, 8), torch.rand(1, 8, 8), dielectric_f0=0.08)
+    torch.testing.assert_close(grey_dielectric_specular(metal.diffuse, metal.specular, 0.08), metal.specular)
+    # A bright diffuse under a dim green specular: a dielectric whose F0 has no colour.
+    diffuse = torch.full((3, 8, 8), 0.5)
+    green = torch.tensor([0.02, 0.07, 0.02]).view(3, 1, 1).expand(3, 8, 8)
+    grey = grey_dielectric_specular(diffuse, green, 0.08)
+    torch.testing.assert_close(grey, (weights * green).sum(0, keepdim=True).expand(3, 8, 8))
+    # Half metal: half of its colour kept, the luminance unchanged.
+    half = Material.from_pbr(base, torch.full((1, 8, 8), 0.5), torch.rand(1, 8, 8), dielectric_f0=0.08)
+    kept = grey_dielectric_specular(half.diffuse, half.specular, 0.08)
+    luminance = (weights * half.specular).sum(0, keepdim=True)
+    torch.testing.assert_close(kept, luminance + 0.5 * (half.specular - luminance), rtol=0, atol=1e-4)
+    torch.testing.assert_close((weights * kept).sum(0), luminance[0], rtol=0, atol=1e-5)

@@ -66,6 +66,12 @@ class CaptureConfig:
     """Above the network's resolution, give the maps the photo's finer detail where their own
     variation follows the photo's (``capturing.detail``); False: the network's answer upsampled."""
 
+    grey_specular: bool = False
+    """Keep the specular's colour only in proportion to each pixel's metallic share (``Material.to_pbr``'s
+    split, as the exports make it) and make it grey of the same luminance otherwise: a dielectric's
+    F0 has no colour. A photo's colour otherwise leaks into the specular map (a green specular on
+    real photos)."""
+
     tileable: bool = False
     """Make the captured maps wrap around their edges without a seam (``tiling.make_tileable``)."""
 
@@ -168,19 +174,30 @@ class Prediction:
     """(B, 3, H, W) the photo whose detail above the network's resolution the maps are given
     (``detail.add_detail``); None: the network's answer upsampled."""
 
+    grey_specular: bool = False
+    """Make the maps' specular grey but for each pixel's metallic share (``CaptureConfig.grey_specular``)."""
+
     @functools.cached_property
     def maps(self) -> torch.Tensor:
         """(B, 10, H, W) the maps at the photo's size."""
         maps = self.output.maps_at(*self.size)
-        if self.detail_from is None or maps.shape[-2] <= self.output.maps.shape[-2]:
-            return maps
-        from .detail import add_detail
+        if self.detail_from is not None and maps.shape[-2] > self.output.maps.shape[-2]:
+            from .detail import add_detail
 
-        return add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps)
+            maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps)
+        if self.grey_specular:
+            from ..export import EXPORT_METAL_F0
+            from ..material import grey_dielectric_specular
+
+            maps = maps.clone() if maps is self.output.maps else maps
+            for index in range(maps.shape[0]):
+                maps[index, constants.SPECULAR] = grey_dielectric_specular(
+                    maps[index, constants.DIFFUSE], maps[index, constants.SPECULAR], EXPORT_METAL_F0)
+        return maps
 
     def compose(self, global_bases: torch.Tensor) -> Prediction:
         """This prediction with other (say, refined) global bases."""
-        return Prediction(self.output.compose(global_bases), self.size, self.detail_from)
+        return Prediction(self.output.compose(global_bases), self.size, self.detail_from, self.grey_specular)
 
 
 def predict_small(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
@@ -309,7 +326,8 @@ class Capturer:
         light = flash_position(offset, photo.fov)
         prediction = predict_small(self.model, photo.pixels[None], light[None], photo.fov,
                                    self.config.network_resolution, self.config.symmetries)
-        return replace(prediction, detail_from=photo.pixels[None]) if self.config.detail else prediction
+        return replace(prediction, detail_from=photo.pixels[None] if self.config.detail else None,
+                       grey_specular=self.config.grey_specular)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""

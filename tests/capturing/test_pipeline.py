@@ -188,3 +188,17 @@ def test_the_report_of_a_large_capture_shows_its_images_averaged_to_the_panel(tm
     # The ramps: linear red at the panel's middle row is about 0.5.
     middle = panel[panel.shape[0] // 2, 8:-8]
     assert abs(middle[:, 0].mean() - 0.735) < 0.03 and abs(middle[:, 1].mean() - 0.735) < 0.03
+
+
+def test_grey_specular_greys_the_refined_maps_specular_but_for_its_metal_share(tiny_checkpoint):
+    from mideepbasis.export import EXPORT_METAL_F0
+    from mideepbasis.material import grey_dielectric_specular
+
+    photo = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(5)) * 0.6 + 0.1
+    common = dict(model=tiny_checkpoint, light=(0.0, 0.0), symmetries=1, refine=RefineConfig(steps=3))
+    coloured = capture(photo, **common).material.to_tensor()
+    grey = capture(photo, grey_specular=True, **common).material.to_tensor()
+    torch.testing.assert_close(grey[:7], coloured[:7])  # normal, diffuse, roughness as they were
+    expected = grey_dielectric_specular(coloured[3:6], coloured[7:10], EXPORT_METAL_F0)
+    torch.testing.assert_close(grey[7:10], expected, rtol=0, atol=1e-6)
+    assert (coloured[7:10].amax(0) - coloured[7:10].amin(0)).max() > 1e-3  # the tiny model's specular has colour
