@@ -117,11 +117,8 @@ def scene_xml(offset: tuple[float, float], fov: float, resolution: int, conventi
 
 # --- glTF ----------------------------------------------------------------------------------------------
 
-#: The specular F0 up to which the exports keep a pixel a dielectric (metallic 0) [reflectance]. Dielectrics
-#: reach about 0.08 (index of refraction 1.8), and KHR_materials_specular's colour factor carries any F0
-#: exactly; at 0.04 a glossy dielectric slightly above it turned partly metallic, its specular taking the
-#: base colour (the Blender check of a capture: 1.2 % off, 0.6 % at 0.08).
-EXPORT_METAL_F0 = 0.08
+#: The specular F0 up to which the exports keep a pixel a dielectric (``constants.EXPORT_METAL_F0``).
+EXPORT_METAL_F0 = constants.EXPORT_METAL_F0
 
 
 def export_pbr(material) -> dict:

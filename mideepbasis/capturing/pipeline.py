@@ -186,13 +186,12 @@ class Prediction:
 
             maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps)
         if self.grey_specular:
-            from ..export import EXPORT_METAL_F0
             from ..material import grey_dielectric_specular
 
             maps = maps.clone() if maps is self.output.maps else maps
             for index in range(maps.shape[0]):
                 maps[index, constants.SPECULAR] = grey_dielectric_specular(
-                    maps[index, constants.DIFFUSE], maps[index, constants.SPECULAR], EXPORT_METAL_F0)
+                    maps[index, constants.DIFFUSE], maps[index, constants.SPECULAR], constants.EXPORT_METAL_F0)
         return maps
 
     def compose(self, global_bases: torch.Tensor) -> Prediction:
