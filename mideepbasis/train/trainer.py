@@ -121,16 +121,10 @@ class Trainer:
         if config.init and not resume:
             self._initialise_from(config.init)
         # The local unit the kept maps come from: the init's, also when the run resumes.
-        self.kept_from = None
-        if config.local_pool_keep:
-            from ..model.checkpoint import load_model
-
-            self.kept_from = load_model(config.init).to(self.device).eval().requires_grad_(False)
+        self.kept_from = self._frozen(config.init) if config.local_pool_keep else None
         self.anchor = None
         if config.anchor:
-            from ..model.checkpoint import load_model
-
-            self.anchor = load_model(config.anchor).to(self.device).eval().requires_grad_(False)
+            self.anchor = self._frozen(config.anchor)
             if self.anchor.config != self.model.config:
                 raise InputError(f"{config.anchor}: the anchor's network configuration differs from this run's")
         if resume:
@@ -140,6 +134,12 @@ class Trainer:
                 self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None)
 
     # --- checkpoints ---------------------------------------------------------------------------
+
+    def _frozen(self, path: str) -> DeepBasisNet:
+        """The network of checkpoint ``path`` on this run's device, in eval mode, without gradients."""
+        from ..model.checkpoint import load_model
+
+        return load_model(path).to(self.device).eval().requires_grad_(False)
 
     def _extra_inputs(self) -> tuple[str, ...]:
         return getattr(self.model, "module", self.model).config.extra_inputs
