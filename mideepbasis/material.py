@@ -457,11 +457,14 @@ class Material:
 _PBR_BAND_ROWS = 256
 
 
-def metallic_share(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0: float) -> torch.Tensor:
-    """The metallic (1, H, W) in [0, 1] of ``Material.to_pbr`` for diffuse and specular (3, H, W),
-    computed in their dtype: 0 where the specular's luminance is at most ``dielectric_f0``."""
-    weights = torch.tensor(constants.LUMINANCE_WEIGHTS, dtype=diffuse.dtype, device=diffuse.device).reshape(3, 1, 1)
-    lum_d, lum_s = (weights * diffuse).sum(0, keepdim=True), (weights * specular).sum(0, keepdim=True)
+def _luminance(rgb: torch.Tensor) -> torch.Tensor:
+    """(1, H, W) luminance of (3, H, W) linear colours (``constants.LUMINANCE_WEIGHTS``), in their dtype."""
+    weights = torch.tensor(constants.LUMINANCE_WEIGHTS, dtype=rgb.dtype, device=rgb.device).reshape(3, 1, 1)
+    return (weights * rgb).sum(0, keepdim=True)
+
+
+def _metallic_of_luminances(lum_d: torch.Tensor, lum_s: torch.Tensor, dielectric_f0: float) -> torch.Tensor:
+    """``metallic_share`` from the luminances (1, H, W) of the diffuse and the specular."""
     excess = (lum_s - dielectric_f0).clamp(min=0)
     b = lum_d + lum_s - 2 * dielectric_f0
     denominator = b + torch.sqrt(b * b + 4 * dielectric_f0 * excess)
@@ -469,13 +472,18 @@ def metallic_share(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0:
     return metallic.clamp(0, 1)
 
 
+def metallic_share(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0: float) -> torch.Tensor:
+    """The metallic (1, H, W) in [0, 1] of ``Material.to_pbr`` for diffuse and specular (3, H, W),
+    computed in their dtype: 0 where the specular's luminance is at most ``dielectric_f0``."""
+    return _metallic_of_luminances(_luminance(diffuse), _luminance(specular), dielectric_f0)
+
+
 def grey_dielectric_specular(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0: float) -> torch.Tensor:
     """The specular (3, H, W) with each pixel's colour kept in proportion to its metallic share
     (``metallic_share`` at ``dielectric_f0``) and grey of the same luminance otherwise: a
     dielectric's F0 has no colour, only a metal's does."""
-    weights = torch.tensor(constants.LUMINANCE_WEIGHTS, dtype=specular.dtype, device=specular.device).reshape(3, 1, 1)
-    luminance = (weights * specular).sum(0, keepdim=True)
-    metallic = metallic_share(diffuse, specular, dielectric_f0)
+    luminance = _luminance(specular)
+    metallic = _metallic_of_luminances(_luminance(diffuse), luminance, dielectric_f0)
     return (luminance + metallic * (specular - luminance)).clamp(0, 1)
 
 

@@ -15,6 +15,13 @@ def tiny_config(tmp_path, **overrides):
     return TrainConfig(**values)
 
 
+def procedural_maps(count: int = 2) -> torch.Tensor:
+    """(count, 10, 32, 32) procedural materials of seeds 0, 1, ..."""
+    from mideepbasis.data.procedural import GeneratorConfig, generate
+
+    return torch.stack([generate(seed, config=GeneratorConfig(size=32)).to_tensor() for seed in range(count)])
+
+
 def pool_config(tmp_path, **overrides):
     """A run of the normal unit alone on a pool of three materials (``TrainConfig.normal_pool``)."""
     values = dict(network={"normal_unit_width": 4}, train_only=("normal_unit",), vc_weight=0.0, normal_pool=3,

@@ -6,21 +6,16 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.synth import SynthesisConfig, synthesize
 from mideepbasis.errors import InputError
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.train import Trainer
 from mideepbasis.train.losses import supervised_loss
 
-from .helpers import tiny_config
+from .helpers import procedural_maps, tiny_config
 
 #: Phone levers on, the plain camera drawn for every batch or none.
 PHONE = {"fov_range": (25.0, 70.0), "white_balance_sigma": 0.08}
-
-
-def _materials(count: int = 2) -> torch.Tensor:
-    return torch.stack([generate(seed, config=GeneratorConfig(size=32)).to_tensor() for seed in range(count)])
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +28,7 @@ def anchor_file(tmp_path_factory):
 
 
 def test_synthesis_says_which_batches_the_plain_camera_took():
-    maps = _materials()
+    maps = procedural_maps()
     for probability, expected in ((1.0, True), (0.0, False)):
         config = SynthesisConfig(plain_probability=probability, **PHONE)
         batch = synthesize(maps, torch.Generator().manual_seed(1), config)
@@ -48,7 +43,7 @@ def test_synthesis_says_which_batches_the_plain_camera_took():
 
 
 def test_the_anchor_term_is_the_l1_to_the_anchors_maps_on_plain_batches_only(tmp_path, anchor_file):
-    maps = _materials()
+    maps = procedural_maps()
     trainer = Trainer(tiny_config(tmp_path, anchor=str(anchor_file), synthesis={"plain_probability": 0.5, **PHONE}),
                       progress=False)
     anchor = load_model(anchor_file).eval()
@@ -70,7 +65,7 @@ def test_the_anchor_term_is_the_l1_to_the_anchors_maps_on_plain_batches_only(tmp
 def test_an_anchor_holds_the_plain_answers_that_training_would_move(tmp_path, anchor_file):
     """From the anchor's own weights, ten steps at a high learning rate move the plain answers; the
     anchor's term keeps them nearer to the anchor's."""
-    maps = _materials()
+    maps = procedural_maps()
     probe = synthesize(maps, torch.Generator().manual_seed(99), SynthesisConfig())
     anchor = load_model(anchor_file).eval()
     with torch.no_grad():

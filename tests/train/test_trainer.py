@@ -13,16 +13,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from mideepbasis.data.procedural import GeneratorConfig, generate
+from mideepbasis.data.procedural import generate
 from mideepbasis.model.checkpoint import load_model, read_checkpoint
 from mideepbasis.train import Trainer
 
-from .helpers import tiny_config
+from .helpers import procedural_maps, tiny_config
 
 
 def test_loss_falls_on_a_fixed_batch(tmp_path):
     trainer = Trainer(tiny_config(tmp_path, steps=60), progress=False)
-    maps = torch.stack([generate(seed, config=GeneratorConfig(size=32)).to_tensor() for seed in range(2)])
+    maps = procedural_maps()
     losses = [trainer.train_step(maps)["loss"] for _ in range(60)]
     assert sum(losses[-10:]) / 10 < 0.8 * sum(losses[:10]) / 10, losses
 
@@ -30,7 +30,7 @@ def test_loss_falls_on_a_fixed_batch(tmp_path):
 def test_penalty_revives_a_saturated_weight_decoder(tmp_path):
     # Blow the decoder's last layer up until its outputs reach tens (tanh flat, the blend's gradient
     # gone), as a run's did; with the penalty they come back, without it they do not.
-    maps = torch.stack([generate(seed, config=GeneratorConfig(size=32)).to_tensor() for seed in range(2)])
+    maps = procedural_maps()
     final = {}
     for weight in (0.0, 1e-2):
         trainer = Trainer(tiny_config(tmp_path / str(weight), lr=1e-2, local_lr=1e-2, saturation_weight=weight),
