@@ -263,8 +263,6 @@ def main() -> None:
     parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
     parser.add_argument("--diffuse-gain", choices=("fitted", "albedo"), default=capture_detail.DIFFUSE_GAIN,
                         help="how the detail step sets the diffuse's gains (capturing.detail.DIFFUSE_GAIN)")
-    parser.add_argument("--fine-normals", type=float, default=CaptureConfig.fine_normals,
-                        help="gain of the fine relief in the detailed row (CaptureConfig.fine_normals)")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
     args = parser.parse_args()
@@ -282,10 +280,9 @@ def main() -> None:
                       visibility_report(chosen, offsets, args, convention, extent))
         return
     labels = row_labels(args.size, args.low)
-    capturers = {labels[0]: Capturer(model, replace(base, resolution=args.low, detail=False, fine_normals=0.0)),
-                 labels[1]: Capturer(model, replace(base, resolution=args.size, detail=False, fine_normals=0.0)),
-                 labels[2]: Capturer(model, replace(base, resolution=args.size, detail=True,
-                                                    fine_normals=args.fine_normals))}
+    capturers = {labels[0]: Capturer(model, replace(base, resolution=args.low, detail=False)),
+                 labels[1]: Capturer(model, replace(base, resolution=args.size, detail=False)),
+                 labels[2]: Capturer(model, replace(base, resolution=args.size, detail=True))}
     lights, views = random_lights_and_views(args.lights, args.seed)
     sheet_left = dict(SHEET_MATERIALS) if not args.no_sheet else {}
     sheet_rows, records = [], []
@@ -348,7 +345,7 @@ def main() -> None:
             print_table(group, groups[group])
     report = {"model": args.model or "shipped", "size": args.size, "low": args.low, "band": args.band,
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
-              "refine_steps": base.refine.steps, "diffuse_gain": args.diffuse_gain, "fine_normals": args.fine_normals, "groups": groups, "per_material": records}
+              "refine_steps": base.refine.steps, "diffuse_gain": args.diffuse_gain, "groups": groups, "per_material": records}
     write_section(args.output, "detail", "detail", report)
     if sheet_rows:
         write_sheet(args.sheet, sheet_rows)

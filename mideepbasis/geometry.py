@@ -13,16 +13,12 @@ import torch
 from . import constants
 
 
-def pixel_points(height: int, width: int, device=None, dtype=torch.float32, rows: range | None = None,
-                 cols: range | None = None) -> torch.Tensor:
-    """Plane points seen by the pixel centres, (3, H, W): x = -1 + (2j + 1) / w, y = 1 - (2i + 1) / h;
-    ``rows`` and ``cols``: only those of the H x W image's pixels, (3, len(rows), len(cols))."""
-    rows = torch.arange(height, device=device, dtype=dtype) if rows is None else torch.tensor(
-        rows, device=device, dtype=dtype)
-    cols = torch.arange(width, device=device, dtype=dtype) if cols is None else torch.tensor(
-        cols, device=device, dtype=dtype)
-    y = (1 - (2 * rows + 1) / height)[:, None].expand(len(rows), len(cols))
-    x = ((2 * cols + 1) / width - 1)[None, :].expand(len(rows), len(cols))
+def pixel_points(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """Plane points seen by the pixel centres, (3, H, W): x = -1 + (2j + 1) / w, y = 1 - (2i + 1) / h."""
+    rows = torch.arange(height, device=device, dtype=dtype)
+    cols = torch.arange(width, device=device, dtype=dtype)
+    y = (1 - (2 * rows + 1) / height)[:, None].expand(height, width)
+    x = ((2 * cols + 1) / width - 1)[None, :].expand(height, width)
     return torch.stack([x, y, torch.zeros_like(x)])
 
 

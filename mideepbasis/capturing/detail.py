@@ -64,17 +64,6 @@ DIFFUSE_GAIN = "fitted"
 #: Output pixels per band of rows at the working resolution (the memory of one band's buffers).
 BAND_PIXELS = 1 << 20
 
-#: Side of the windows the normal unit runs in at the working resolution (``fine_slope``) [pixels]:
-#: about the size it was trained at, as its channel attention pools over its whole input.
-FINE_TILE = 1024
-
-#: Context on each side of a window, cut away from its slope [pixels].
-FINE_MARGIN = 32
-
-#: Largest side the flash falloff is rendered at for ``fine_slope``, then interpolated (it holds no
-#: fine detail) [pixels].
-FALLOFF_SIZE = 256
-
 
 def _guides(photo: torch.Tensor) -> torch.Tensor:
     """(B, 3, H, W) -> (B, 4, H, W): red, green, blue and luminance."""
@@ -118,10 +107,8 @@ def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = 
     return gains * strength
 
 
-def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor, normals: bool = True) -> torch.Tensor:
-    """``maps`` with the photo's detail above the resolution of ``low_maps`` (module docstring);
-    ``normals`` False leaves the normals to ``fine_slope``: both on, the photo's fine contrast
-    would be read as relief twice.
+def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor) -> torch.Tensor:
+    """``maps`` with the photo's detail above the resolution of ``low_maps`` (module docstring).
 
     Args:
         maps: (B, 10, H, W) the maps at the working resolution (changed in place and returned).
@@ -138,8 +125,6 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor, 
     with torch.no_grad():
         low_photo = downsample(photo.float(), low_size)
         gains = detail_gains(low_maps, low_photo)
-        if not normals:
-            gains[:, constants.NORMAL] = 0.0
         low_guides = _guides(low_photo)
         factor = height // low_size[0]
         banded = (exact_in_bands(low_size[0], height) and low_size[1] * factor == width)
@@ -168,64 +153,3 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor, 
                                                      dim=1)
             band[:, constants.REFLECTANCE] = band[:, constants.REFLECTANCE].clamp(0.0, 1.0)
     return maps
-
-
-def fine_slope(model, photo: torch.Tensor, lights: torch.Tensor, fov: float, low_size: tuple[int, int],
-               tile: int = FINE_TILE, margin: int = FINE_MARGIN) -> torch.Tensor:
-    """The normal unit's slope at the photo's own resolution, above the network's: relief finer than
-    the network sees, read from the photo's shading by the unit that reads it at the network's
-    resolution (``DeepBasisNet.normal_unit``; ``CaptureConfig.fine_normals``).
-
-    The unit runs on windows of ``tile`` pixels with ``margin`` pixels of context, so its memory
-    does not grow with the photo and each window is about the size the unit was trained on. Its
-    inputs (``model.inputs.relief_inputs``) are made for each window from the whole photo's
-    geometry: the flash falloff (rendered at ``FALLOFF_SIZE`` and interpolated), the plane points,
-    and the high-pass blur of the unit's own pixels. What the slope holds below ``low_size`` is
-    taken out: there the network's answer stays.
-
-    Args:
-        model: a ``DeepBasisNet`` with a normal unit.
-        photo: (B, 3, H, W) linear; lights: (B, 3) flash positions [patch half-widths]; fov [deg].
-        low_size: the network's (h, w), h < H.
-
-    Returns:
-        (B, 2, H, W) the x and y slope to add to unit normals (then renormalised).
-    """
-    from ..geometry import pixel_points
-    from ..model.inputs import flash_falloff, relief_inputs
-
-    batch, _, height, width = photo.shape
-    convention, extent = model.config.convention, model.config.plane_extent
-    lights = lights.view(batch, 3).float()
-    coarse = flash_falloff(lights, min(height, FALLOFF_SIZE), min(width, FALLOFF_SIZE), fov, convention, extent)
-    sigma = max(0.5, (model.info.training_size or low_size[1]) / 64.0)
-    slope = torch.empty(batch, 2, height, width)
-    with torch.no_grad():
-        for top in range(0, height, tile):
-            for left in range(0, width, tile):
-                rows = range(max(0, top - margin), min(height, top + tile + margin))
-                cols = range(max(0, left - margin), min(width, left + tile + margin))
-                points = pixel_points(height, width, rows=rows, cols=cols)[None]
-                # grid_sample's y runs down the image, the plane's up.
-                grid = torch.stack([points[0, 0], -points[0, 1]], dim=-1)[None].expand(batch, -1, -1, -1)
-                falloff = F.grid_sample(coarse, grid, mode="bilinear", padding_mode="border", align_corners=False)
-                window = photo[..., rows.start:rows.stop, cols.start:cols.stop].float()
-                relief = relief_inputs(window, lights, fov, convention, extent, falloff=falloff,
-                                       points=points * extent, highpass_sigma=sigma)
-                answer = torch.tanh(model.normal_unit(relief))
-                inner_top, inner_left = top - rows.start, left - cols.start
-                bottom, right = min(height, top + tile), min(width, left + tile)
-                slope[..., top:bottom, left:right] = answer[..., inner_top:inner_top + bottom - top,
-                                                            inner_left:inner_left + right - left]
-    slope -= upsample_bilinear(downsample(slope, low_size), height, width)
-    return slope
-
-
-def add_fine_slope(maps: torch.Tensor, slope: torch.Tensor) -> torch.Tensor:
-    """``maps`` (B, 10, H, W) with ``slope`` (B, 2, H, W) added to their normals' x and y, which are
-    then renormalised (changed in place and returned)."""
-    normals = maps[:, constants.NORMAL]
-    normals[:, 0:2] += slope
-    maps[:, constants.NORMAL] = unit_vectors(normals, dim=1)
-    return maps
-

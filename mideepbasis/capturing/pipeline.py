@@ -72,10 +72,6 @@ class CaptureConfig:
     F0 has no colour. A photo's colour otherwise leaks into the specular map (a green specular on
     real photos)."""
 
-    fine_normals: float = 0.0
-    """Gain of the relief finer than the network's resolution, read by its normal unit run at the
-    working resolution (``capturing.detail.fine_slope``); 0: none, the network's normals upsampled."""
-
     tileable: bool = False
     """Make the captured maps wrap around their edges without a seam (``tiling.make_tileable``)."""
 
@@ -181,10 +177,6 @@ class Prediction:
     grey_specular: bool = False
     """Make the maps' specular grey but for each pixel's metallic share (``CaptureConfig.grey_specular``)."""
 
-    fine_slope: torch.Tensor | None = None
-    """(B, 2, H, W) the normal slope above the network's resolution added to the maps' normals
-    (``detail.fine_slope``, times ``CaptureConfig.fine_normals``); None: none."""
-
     @functools.cached_property
     def maps(self) -> torch.Tensor:
         """(B, 10, H, W) the maps at the photo's size."""
@@ -192,12 +184,7 @@ class Prediction:
         if self.detail_from is not None and maps.shape[-2] > self.output.maps.shape[-2]:
             from .detail import add_detail
 
-            maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps,
-                              normals=self.fine_slope is None)
-        if self.fine_slope is not None and maps.shape[-2] > self.output.maps.shape[-2]:
-            from .detail import add_fine_slope
-
-            maps = add_fine_slope(maps.clone() if maps is self.output.maps else maps, self.fine_slope)
+            maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps)
         if self.grey_specular:
             from ..material import grey_dielectric_specular
 
@@ -209,7 +196,7 @@ class Prediction:
 
     def compose(self, global_bases: torch.Tensor) -> Prediction:
         """This prediction with other (say, refined) global bases."""
-        return replace(self, output=self.output.compose(global_bases))
+        return Prediction(self.output.compose(global_bases), self.size, self.detail_from, self.grey_specular)
 
 
 def predict_small(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
@@ -339,18 +326,7 @@ class Capturer:
         prediction = predict_small(self.model, photo.pixels[None], light[None], photo.fov,
                                    self.config.network_resolution, self.config.symmetries)
         return replace(prediction, detail_from=photo.pixels[None] if self.config.detail else None,
-                       grey_specular=self.config.grey_specular, fine_slope=self.fine_slope(photo, light, prediction))
-
-    def fine_slope(self, photo: Photo, light: torch.Tensor, prediction: Prediction) -> torch.Tensor | None:
-        """The normal slope above the network's resolution (``detail.fine_slope``) times
-        ``CaptureConfig.fine_normals``; None where that is 0, the model has no normal unit, or the
-        network ran at the photo's size."""
-        low_size = tuple(prediction.output.maps.shape[-2:])
-        if not self.config.fine_normals or not hasattr(self.model, "normal_unit") or low_size[0] >= prediction.size[0]:
-            return None
-        from .detail import fine_slope
-
-        return self.config.fine_normals * fine_slope(self.model, photo.pixels[None], light[None], photo.fov, low_size)
+                       grey_specular=self.config.grey_specular)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""

@@ -377,7 +377,6 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
                                       if config.network_resolution is not None else {}),
                                    **({"resolution": config.resolution} if config.resolution else {}),
                                    **({"grey_specular": config.grey_specular} if config.grey_specular is not None else {}),
-                                   **({"fine_normals": config.fine_normals} if config.fine_normals is not None else {}),
                                    refine=shown_refinement(config), detail=config.detail)
     capturer = Capturer(config.model, capture_config)
     folders = scene_folders(config.data)

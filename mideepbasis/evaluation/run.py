@@ -90,10 +90,6 @@ class EvaluationConfig:
     """Make the specular grey but for each pixel's metallic share, as ``capture --grey-specular``
     does (``CaptureConfig.grey_specular``; None: capture's default)."""
 
-    fine_normals: float | None = None
-    """Gain of the relief finer than the network's resolution, as ``capture --fine-normals`` sets it
-    (``CaptureConfig.fine_normals``; None: capture's default)."""
-
     symmetries: int | None = field(default=None, metadata={"parse": symmetry_count, "metavar": "1|2|4|8"})
     """Turns and mirrorings of each photo the model's prediction is averaged over (1, 2, 4 or 8;
     None: capture's default, ``CaptureConfig.symmetries``)."""
@@ -155,20 +151,19 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
     return config.refine if config.refine.steps else replace(config.refine, steps=CaptureConfig().refine.steps)
 
 
-def _capture_config(symmetries: int | None = None, grey_specular: bool | None = None,
-                    fine_normals: float | None = None, **fields):
+def _capture_config(symmetries: int | None = None, grey_specular: bool | None = None, **fields):
     """The capture settings of an evaluation: capture's own where the evaluation leaves one None."""
     from ..capturing import CaptureConfig
 
-    given = {name: value for name, value in (("symmetries", symmetries), ("grey_specular", grey_specular),
-                                             ("fine_normals", fine_normals)) if value is not None}
+    given = {name: value for name, value in (("symmetries", symmetries), ("grey_specular", grey_specular))
+             if value is not None}
     return CaptureConfig(**fields, **given)
 
 
 def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine: RefineConfig,
                  progress: bool, label: str, network_resolution: int | None = None,
-                 symmetries: int | None = None, detail: bool = True, grey_specular: bool | None = None,
-                 fine_normals: float | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+                 symmetries: int | None = None, detail: bool = True, grey_specular: bool | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine.steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
     import time
@@ -179,8 +174,7 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
 
     convention = model.config.convention
     capturer = Capturer(model, _capture_config(fov=fov, network_resolution=network_resolution, symmetries=symmetries,
-                                               refine=refine, detail=detail, grey_specular=grey_specular,
-                                               fine_normals=fine_normals))
+                                               refine=refine, detail=detail, grey_specular=grey_specular))
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
@@ -257,7 +251,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     steps = refine.steps
     plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, refine, progress, "model",
                                            config.network_resolution, config.symmetries, config.detail,
-                                           config.grey_specular, config.fine_normals)
+                                           config.grey_specular)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
     kept = "" if refine.normals else ", normals kept"

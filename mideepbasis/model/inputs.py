@@ -192,9 +192,7 @@ RELIEF_DIRECTION_CHANNEL = 5
 
 
 def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG,
-                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0, *,
-                  falloff: torch.Tensor | None = None, points: torch.Tensor | None = None,
-                  highpass_sigma: float | None = None) -> torch.Tensor:
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
     """The input of the normal unit (``NetworkConfig.normal_unit_width``): what a relief changes in a
     flash photo, made explicit. A small tilt t of the normal changes the shading by about
     t . l_xy, the flash direction's component in the sample plane, so the unit gets:
@@ -205,10 +203,6 @@ def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = consta
     - its high-pass, minus a Gaussian blur of sigma 1/64 of the width (1);
     - 3 l_x and 3 l_y, the unit vector from each pixel's point towards the flash (2).
 
-    A window of a larger photo (``capturing.detail.fine_slope``) passes its own ``falloff``
-    (B, 1, H, W) and plane ``points`` (1, 3, H, W), cut from the whole photo's, and the blur's
-    ``highpass_sigma`` [pixels]; by default they are made for the photo as a whole.
-
     Args:
         photo: (B, 3, H, W) linear, clipped to [0, 1]; lights: (B, 3) flash positions [patch half-widths].
 
@@ -217,14 +211,10 @@ def relief_inputs(photo: torch.Tensor, lights: torch.Tensor, fov: float = consta
     """
     batch, _, height, width = photo.shape
     photo = photo.clamp(0.0, 1.0)
-    if falloff is None:
-        falloff = flash_falloff(lights, height, width, fov, convention, extent)
-    falloff = falloff.to(photo)
+    falloff = flash_falloff(lights, height, width, fov, convention, extent).to(photo)
     shading = torch.log(photo.mean(dim=1, keepdim=True) + LOG_EPS) - torch.log(falloff + LOG_EPS)
-    sigma = max(0.5, width / 64.0) if highpass_sigma is None else highpass_sigma
-    highpass = shading - gaussian_blur(shading, sigma)
-    if points is None:
-        points = geometry.pixel_points(height, width, device=photo.device, dtype=photo.dtype)[None] * extent
+    highpass = shading - gaussian_blur(shading, max(0.5, width / 64.0))
+    points = geometry.pixel_points(height, width, device=photo.device, dtype=photo.dtype)[None] * extent
     towards = lights.to(photo).view(batch, 3, 1, 1) - points
     direction = towards / geometry.vector_length(towards, dim=1, keepdim=True)
     return torch.cat([log_compress(photo) * 2.0 - 1.0, 0.3 * shading, highpass, 3.0 * direction[:, :2]], dim=1)
