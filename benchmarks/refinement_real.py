@@ -43,6 +43,7 @@ VARIANTS = {
     "encoded_prior0.05": {"encoded_loss": True, "prior": 0.05},
     "diffuse_only": {"moving_maps": ("diffuse",)},
     "diffuse_roughness": {"moving_maps": ("diffuse", "roughness")},
+    "diffuse_specular": {"moving_maps": ("diffuse", "specular")},
 }
 
 

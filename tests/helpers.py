@@ -2,9 +2,27 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import sys
+from pathlib import Path
 
 import torch
+
+#: The benchmark scripts' folder (not a package: they import ``common`` beside them).
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def benchmark_module(name: str):
+    """The benchmark script ``benchmarks/NAME.py`` loaded as a module (its ``main`` not run)."""
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", BENCHMARKS / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return module
 
 
 def directional_albedo(view_angle_deg: float, diffuse: float = 1.0, roughness: float = 1.0, specular: float = 0.0,

@@ -1,28 +1,14 @@
 """``benchmarks/detail.py``'s shading_visibility: a matte surface's fine relief shows in its flash
 photo as the first-order shading ``(l_xy / l_z) . dn_xy``, with slope 1."""
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import torch
 
 from mideepbasis import constants, geometry
 from mideepbasis.evaluation import flash_photos
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-
-
-def _detail_module():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        spec = importlib.util.spec_from_file_location("benchmarks_detail", BENCHMARKS / "detail.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return module
+from ..helpers import benchmark_module
 
 
 def _matte_relief(size: int, cycles: int, slope: float) -> torch.Tensor:
@@ -42,7 +28,7 @@ def _matte_relief(size: int, cycles: int, slope: float) -> torch.Tensor:
 
 
 def test_matte_relief_shows_with_slope_one():
-    detail = _detail_module()
+    detail = benchmark_module("detail")
     maps = _matte_relief(256, cycles=24, slope=0.15)
     photos, lights = flash_photos(maps, torch.tensor([[0.3, -0.2]]), constants.DEFAULT_FOV_DEG, "physical", 1.0)
     seen = detail.shading_visibility(maps, photos, lights[0], band=64)
