@@ -225,6 +225,19 @@ PROGRESS_SYNC_STEPS = 10
 _frozen_step = dr.freeze(_step)
 
 
+def _aligned(array) -> np.ndarray:
+    """A float32 copy of ``array``, flat, its data on a 64-byte boundary. drjit records the frozen
+    step again for each new pattern of aligned and unaligned inputs: numpy's own arrays, aligned by
+    chance, made a refinement record it anew now and then (9 recordings over 15 refinements, and
+    drjit's warning after 10), where aligned ones give the same two recordings to every refinement."""
+    array = np.asarray(array, dtype=np.float32).reshape(-1)
+    buffer = np.empty(array.size + 16, dtype=np.float32)
+    start = (-buffer.ctypes.data % 64) // 4
+    result = buffer[start:start + array.size]
+    result[:] = array
+    return result
+
+
 def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.ndarray, movable: np.ndarray,
                      target: np.ndarray, light: np.ndarray, intensity: float, convention: str, extent: float,
                      steps: int, lr: float, prior: float, progress=None,
@@ -251,7 +264,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     """
     bases, size = weights.shape[0], weights.shape[-1]
     count = bases * constants.BASIS_CHANNELS
-    as_float = lambda array: mi.Float(np.ascontiguousarray(array, dtype=np.float32).reshape(-1))  # noqa: E731
+    as_float = lambda array: mi.Float(_aligned(array))  # noqa: E731
     target = np.asarray(target, dtype=np.float32).reshape(3, -1)
     if encoded_loss:
         target = linear_to_srgb(np.maximum(target, np.float32(constants.REFINE_ENCODING_FLOOR)))
@@ -269,10 +282,15 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     if not normals_move:
         data.normal = fixed_normal(data, bases, size * size)
         data.deviations = as_float(np.asarray(deviations)[:, REFLECTANCE_CHANNELS.start:])
-    free = mi.Float(data.predicted)
-    first_moment, second_moment = dr.zeros(mi.Float, count), dr.zeros(mi.Float, count)
+    # Arrays of their own: an input that is another input's variable (a copy of the predicted bases,
+    # two zero literals merged into one) would record the first step anew at every refinement.
+    free = as_float(predicted)
+    first_moment, second_moment = as_float(np.zeros(count)), as_float(np.zeros(count))
     # Evaluated inputs (not literals): every call then matches the one recording.
     dr.make_opaque(free, first_moment, second_moment, data.light, data.intensity, data.lr, data.bound, data.prior)
+    # The plugin is made outside the recording: made inside, its arrays would be neither inputs nor
+    # the step's own, and the first refinement in a process would fail to record.
+    flash_renderer(convention)
     losses = []
     for step in (progress or (lambda steps: steps))(range(1, steps + 1)):
         free, first_moment, second_moment, loss = _frozen_step(free, first_moment, second_moment, mi.Float(step),

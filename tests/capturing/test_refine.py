@@ -202,6 +202,27 @@ def test_the_refinement_keeping_the_normals_renders_them_blended_once_with_the_s
     assert np.array_equal(quick[:, :3], predicted[:, :3]) and np.abs(quick - predicted).max() > 0.05
 
 
+def test_a_batch_of_refinements_records_the_frozen_step_once_for_all():
+    """The frozen step is recorded for the first refinements only: later ones, with other values,
+    replay it (drjit warns after 10 recordings, and each one is kept in memory)."""
+    from mideepbasis.render import fit
+
+    movable = np.ones(10, dtype=np.float32)
+    movable[:3] = 0.0
+    recordings = []
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        weights = rng.random((3, 16, 16)).astype(np.float32)
+        weights /= weights.sum(axis=0, keepdims=True)
+        predicted = rng.uniform(-0.6, 0.6, (3, 10)).astype(np.float32)
+        predicted[:, 2] = 0.9
+        fit.fit_global_bases(weights, (0.2 * rng.standard_normal((3, 10, 16, 16))).astype(np.float32), predicted,
+                             movable, rng.uniform(0.05, 0.6, (3, 16, 16)).astype(np.float32), np.array([0.2, -0.1, 2.0]),
+                             3.0, "physical", 1.0, 10, 0.02, 0.0)
+        recordings.append(fit._frozen_step.n_recordings)
+    assert recordings[2:] == [recordings[1]] * 10
+
+
 def test_the_network_runs_at_its_training_resolution_and_the_prediction_is_upsampled(tmp_path):
     torch.manual_seed(0)
     path = save_checkpoint(tmp_path / "m.safetensors", DeepBasisNet(preset("tiny")).eval(),
