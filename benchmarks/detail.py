@@ -1,6 +1,6 @@
 """Maps as sharp as the photo: captures at 1024 px against the truth's fine detail.
 
-    .venv/bin/python benchmarks/detail.py [--model CKPT] [--materials 12] [--flat 4] [--size 1024] [--diffuse-gain albedo]
+    .venv/bin/python benchmarks/detail.py [--model CKPT] [--materials 12] [--flat 4] [--size 1024]
     .venv/bin/python benchmarks/detail.py --materials 1 --flat 1 --size 256 --low 128 --lights 2 -o /tmp/detail.json --sheet /tmp/detail.png
 
 Held-out procedural materials (seeds 5e8 on, one family after another) are generated at
@@ -50,7 +50,6 @@ from common import RESULTS, write_section
 
 from mideepbasis import constants, geometry
 from mideepbasis.capturing import CaptureConfig, Capturer
-from mideepbasis.capturing import detail as capture_detail
 from mideepbasis.data.procedural import FAMILIES, generate
 from mideepbasis.evaluation import (DETAIL_BAND, above_band, evaluation_offsets, flash_photos, high_band_energy, map_rmse,
                                     random_lights_and_views, rerender)
@@ -261,12 +260,9 @@ def main() -> None:
                         help="JSON file whose entry detail gets the figures")
     parser.add_argument("--sheet", type=Path, default=RESULTS / "detail_crops.png")
     parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
-    parser.add_argument("--diffuse-gain", choices=("fitted", "albedo"), default=capture_detail.DIFFUSE_GAIN,
-                        help="how the detail step sets the diffuse's gains (capturing.detail.DIFFUSE_GAIN)")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
     args = parser.parse_args()
-    capture_detail.DIFFUSE_GAIN = args.diffuse_gain
 
     model = load_model(args.model)
     fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
@@ -345,7 +341,7 @@ def main() -> None:
             print_table(group, groups[group])
     report = {"model": args.model or "shipped", "size": args.size, "low": args.low, "band": args.band,
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
-              "refine_steps": base.refine.steps, "diffuse_gain": args.diffuse_gain, "groups": groups, "per_material": records}
+              "refine_steps": base.refine.steps, "groups": groups, "per_material": records}
     write_section(args.output, "detail", "detail", report)
     if sheet_rows:
         write_sheet(args.sheet, sheet_rows)

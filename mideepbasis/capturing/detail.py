@@ -53,14 +53,6 @@ GUIDE_OF_CHANNEL = (3, 3, 3, 0, 1, 2, 3, 3, 3, 3)
 #: gave the specular 22 times the truth's fine energy and a larger error.
 GAIN_OF_CHANNEL = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0)
 
-#: How the diffuse channels' gains are set: ``"fitted"``, the slope of their band on the photo's, as
-#: every map's; ``"albedo"``, the diffuse's own local value times the correlation of the two bands
-#: (in [0, 1]): what a pure albedo texture under smooth shading needs, whatever the network's own blur
-#: at its finest band. On held-out procedural materials (``benchmarks/detail.py --diffuse-gain``)
-#: "albedo" gives flat textured materials the right fine energy but puts relief's shading into the
-#: diffuse, so "fitted" is the default.
-DIFFUSE_GAIN = "fitted"
-
 #: Output pixels per band of rows at the working resolution (the memory of one band's buffers).
 BAND_PIXELS = 1 << 20
 
@@ -77,12 +69,11 @@ def _box(image: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = WINDOW, eps: float = EPS,
-                 sigma: float = LOW_SIGMA, diffuse_gain: str | None = None) -> torch.Tensor:
+                 sigma: float = LOW_SIGMA) -> torch.Tensor:
     """The gains of each map channel on the photo's contrast at the network's resolution.
 
     Args:
         low_maps: (B, 10, h, w) the network's maps; low_photo: (B, 3, h, w) linear.
-        diffuse_gain: ``DIFFUSE_GAIN``'s choices; None: ``DIFFUSE_GAIN``.
 
     Returns:
         (B, 10, h, w) gains [map units per unit of contrast], ``GAIN_OF_CHANNEL`` applied.
@@ -96,14 +87,6 @@ def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = 
     variance = (_box(contrast * contrast, window) - mean_guide**2).clamp(min=0.0)
     strength = torch.tensor(GAIN_OF_CHANNEL, dtype=torch.float32).view(1, -1, 1, 1)
     gains = _box(covariance / (variance + eps), window)
-    diffuse_gain = DIFFUSE_GAIN if diffuse_gain is None else diffuse_gain
-    if diffuse_gain == "albedo":
-        band_variance = (_box(band * band, window) - mean_band**2).clamp(min=0.0)
-        correlation = (covariance / (variance * band_variance).sqrt().clamp(min=1e-8)).clamp(0.0, 1.0)
-        smooth = low_maps.float() - band
-        gains[:, constants.DIFFUSE] = _box(correlation * smooth, window)[:, constants.DIFFUSE]
-    elif diffuse_gain != "fitted":
-        raise ValueError(f"diffuse_gain: {diffuse_gain!r} is neither 'fitted' nor 'albedo'")
     return gains * strength
 
 

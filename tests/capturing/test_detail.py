@@ -96,26 +96,3 @@ def test_the_specular_gets_no_detail_even_where_it_follows_the_photo():
     before = maps[:, constants.SPECULAR].clone()
     after = detail.add_detail(maps, photo, low)[:, constants.SPECULAR]
     assert torch.allclose(after, before.clamp(0, 1), atol=1e-6)
-
-
-def test_the_albedo_gain_restores_a_blurred_answers_texture_where_the_fitted_gain_falls_short():
-    # The network's answer is blurrier than the truth at its finest band: the fitted slope is
-    # attenuated by that blur, the albedo gain (the diffuse times the bands' correlation) is not.
-    albedo, photo = textured_scene(seed=3)
-    low, _ = upsampled_answer(albedo)
-    low[:, constants.DIFFUSE] = gaussian_blur(low[:, constants.DIFFUSE], 0.5, padding="replicate")
-    maps = upsample_bilinear(low, SIZE, SIZE)
-
-    def ratio(gain: str) -> float:
-        gains = detail.detail_gains(low, downsample(photo, LOW), diffuse_gain=gain)
-        others = slice(constants.DIFFUSE.stop, None)  # the gain choice touches the diffuse alone
-        assert torch.equal(gains[:, others], detail.detail_gains(low, downsample(photo, LOW))[:, others])
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(detail, "DIFFUSE_GAIN", gain)
-            detailed = detail.add_detail(maps.clone(), photo, low)[:, constants.DIFFUSE]
-        return float(high_band(detailed).square().sum() / high_band(albedo).square().sum())
-
-    low_ratio, high_ratio = TOLERANCES["energy_ratio"]
-    assert ratio("fitted") < low_ratio <= ratio("albedo") <= high_ratio
-    with pytest.raises(ValueError, match="diffuse_gain"):
-        detail.detail_gains(low, downsample(photo, LOW), diffuse_gain="sharp")
