@@ -44,6 +44,8 @@ VARIANTS = {
     "diffuse_only": {"moving_maps": ("diffuse",)},
     "diffuse_roughness": {"moving_maps": ("diffuse", "roughness")},
     "diffuse_specular": {"moving_maps": ("diffuse", "specular")},
+    "resolution128": {"resolution": 128},
+    "steps250": {"steps": 250},
 }
 
 
