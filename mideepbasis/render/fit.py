@@ -286,7 +286,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     # two zero literals merged into one) would record the first step anew at every refinement.
     free = as_float(predicted)
     first_moment, second_moment = as_float(np.zeros(count)), as_float(np.zeros(count))
-    # Evaluated inputs (not literals): every call then matches the one recording.
+    # Evaluated inputs (not literals): every call then matches the same recordings.
     dr.make_opaque(free, first_moment, second_moment, data.light, data.intensity, data.lr, data.bound, data.prior)
     # The plugin is made outside the recording: made inside, its arrays would be neither inputs nor
     # the step's own, and the first refinement in a process would fail to record.
