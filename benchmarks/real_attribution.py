@@ -13,7 +13,9 @@ Rows, the RMSE of the other photos averaged over the inputs:
   ``other + model's MAP`` the converse: where a fine-tune gains, the map that carries the gain
   moves the figure;
 - ``model, normals tilted T``: the model's normals with their x and y times T, renormalised (0:
-  flat), which tells whether the normals help the re-rendering at all.
+  flat), which tells whether the normals help the re-rendering at all;
+- ``model, light known``: the model's capture told the calibrated flash position instead of
+  searching for it, which tells what the lighting search costs.
 
 A diagnosis, not a lever to tune to one scene: the capture itself changes nothing here. Writes the
 entry ``real_attribution`` of results/model_quality.json (``-o`` another file).
@@ -85,8 +87,11 @@ def main() -> None:
             for index in tqdm(inputs, desc=scene.name, unit="input", leave=False):
                 model_rows, other_rows = (materials_of_scene(capturer, scene, index, photos[index])
                                           for capturer in models)
+                known = models[0].with_config(light=tuple(float(value) for value in scene.lights[index, :2]))
+                known_rows = materials_of_scene(known, scene, index, photos[index])
                 for row in ROWS:
-                    for name, maps in variants(model_rows[row], other_rows[row], tilts).items():
+                    rows = {**variants(model_rows[row], other_rows[row], tilts), "model, light known": known_rows[row]}
+                    for name, maps in rows.items():
                         rmse = score_rerenders(maps, photos, scene, index, models[0].convention).rmse
                         figures[row].setdefault(name, []).append(rmse)
     means = {row: {name: sum(values) / len(values) for name, values in by_name.items()}
