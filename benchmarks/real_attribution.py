@@ -1,4 +1,4 @@
-"""Which map decides a model's real-photo figure: maps swapped between two models, normals tilted.
+"""Which map decides a model's real-photo figure: maps swapped between two models, normals tilted, light known.
 
     .venv/bin/python benchmarks/real_attribution.py --model A.safetensors --other B.safetensors \
         [--data ../shared/data/real-calibrated] [--inputs all] [--tilts 0,0.5,1,1.5]
@@ -80,20 +80,19 @@ def main() -> None:
     models = Capturer(args.model), Capturer(args.other)
     figures: dict[str, dict[str, list[float]]] = {row: {} for row in ROWS}
     scenes = [load_scene(folder) for folder in scene_folders(args.data)]
-    with torch.no_grad():
-        for scene in tqdm(scenes, desc="scenes", unit="scene"):
-            photos = scene_photos(scene, models[0].config.resolution)
-            inputs = range(len(photos)) if args.inputs == "all" else [int(i) for i in args.inputs.split(",")]
-            for index in tqdm(inputs, desc=scene.name, unit="input", leave=False):
-                model_rows, other_rows = (materials_of_scene(capturer, scene, index, photos[index])
-                                          for capturer in models)
-                known = models[0].with_config(light=tuple(float(value) for value in scene.lights[index, :2]))
-                known_rows = materials_of_scene(known, scene, index, photos[index])
-                for row in ROWS:
-                    rows = {**variants(model_rows[row], other_rows[row], tilts), "model, light known": known_rows[row]}
-                    for name, maps in rows.items():
-                        rmse = score_rerenders(maps, photos, scene, index, models[0].convention).rmse
-                        figures[row].setdefault(name, []).append(rmse)
+    for scene in tqdm(scenes, desc="scenes", unit="scene"):
+        photos = scene_photos(scene, models[0].config.resolution)
+        inputs = range(len(photos)) if args.inputs == "all" else [int(i) for i in args.inputs.split(",")]
+        for index in tqdm(inputs, desc=scene.name, unit="input", leave=False):
+            model_rows, other_rows = (materials_of_scene(capturer, scene, index, photos[index])
+                                      for capturer in models)
+            known = models[0].with_config(light=tuple(float(value) for value in scene.lights[index, :2]))
+            known_rows = materials_of_scene(known, scene, index, photos[index])
+            for row in ROWS:
+                rows = {**variants(model_rows[row], other_rows[row], tilts), "model, light known": known_rows[row]}
+                for name, maps in rows.items():
+                    rmse = score_rerenders(maps, photos, scene, index, models[0].convention).rmse
+                    figures[row].setdefault(name, []).append(rmse)
     means = {row: {name: sum(values) / len(values) for name, values in by_name.items()}
              for row, by_name in figures.items()}
     for name in means[ROWS[0]]:
