@@ -117,13 +117,9 @@ def scene_xml(offset: tuple[float, float], fov: float, resolution: int, conventi
 
 # --- glTF ----------------------------------------------------------------------------------------------
 
-#: The specular F0 up to which the exports keep a pixel a dielectric (``constants.EXPORT_METAL_F0``).
-EXPORT_METAL_F0 = constants.EXPORT_METAL_F0
-
-
 def export_pbr(material) -> dict:
-    """The metallic-roughness maps every export writes: ``Material.to_pbr`` at ``EXPORT_METAL_F0``."""
-    return material.to_pbr(EXPORT_METAL_F0)
+    """The metallic-roughness maps every export writes: ``Material.to_pbr`` at ``constants.EXPORT_METAL_F0``."""
+    return material.to_pbr(constants.EXPORT_METAL_F0)
 
 
 def gltf_material(material, folder: Path, name: str = "captured material", pbr: dict | None = None) -> dict:
@@ -223,11 +219,11 @@ def specular_color(material, pbr: dict | None = None) -> tuple[torch.Tensor, flo
     """The specular colour of the metallic-roughness exports (glTF KHR_materials_specular, MaterialX):
     (the texture (3, H, W) in [0, 1], its factor >= 1), with dielectric F0 = 0.04 x factor x texture.
     Where a pixel is partly metal, its dielectric part has the F0 that ``export_pbr`` split it at
-    (``EXPORT_METAL_F0``), so that a reader's (1 - metallic) F0 + metallic x base colour gives back
+    (``constants.EXPORT_METAL_F0``), so that a reader's (1 - metallic) F0 + metallic x base colour gives back
     the specular; elsewhere the F0 is the specular itself."""
     metallic = (pbr or export_pbr(material))["metallic"]
     # In place: each (3, H, W) temporary is 0.2 GB at 4096 px.
-    specular = material.specular.clone().masked_fill_(metallic > 0, EXPORT_METAL_F0)
+    specular = material.specular.clone().masked_fill_(metallic > 0, constants.EXPORT_METAL_F0)
     factor = max(1.0, float(specular.max()) / constants.DIELECTRIC_F0)
     return specular.div_(constants.DIELECTRIC_F0 * factor).clamp_(0, 1), factor
 

@@ -8,8 +8,9 @@ import json
 import pytest
 import torch
 
+from mideepbasis import constants
 from mideepbasis.errors import InputError
-from mideepbasis.export import EXPORT_METAL_F0, export_pbr, gltf_material
+from mideepbasis.export import export_pbr, gltf_material
 from mideepbasis.imageio import read_image
 from mideepbasis.material import Material
 
@@ -41,7 +42,8 @@ def test_gltf_gives_back_the_specular_of_a_partly_metallic_material(tmp_path):
     size = 8
     base = 0.3 + 0.6 * torch.rand(3, size, size, generator=generator)
     metallic = torch.linspace(0.2, 0.9, size * size).view(1, size, size)
-    material = Material.from_pbr(base, metallic, torch.full((1, size, size), 0.4), dielectric_f0=EXPORT_METAL_F0)
+    material = Material.from_pbr(base, metallic, torch.full((1, size, size), 0.4),
+                                 dielectric_f0=constants.EXPORT_METAL_F0)
     document = gltf_material(material, tmp_path)
     factor = document["materials"][0]["extensions"]["KHR_materials_specular"]["specularColorFactor"][0]
     colour = torch.from_numpy(read_image(tmp_path / "specular_color.png", decode_srgb=True)).permute(2, 0, 1)

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
+from mideepbasis import constants
 from mideepbasis.capturing import RefineConfig, SearchConfig, capture
 from mideepbasis.evaluation import flash_photos
 from mideepbasis.export import save_capture
@@ -191,7 +192,6 @@ def test_the_report_of_a_large_capture_shows_its_images_averaged_to_the_panel(tm
 
 
 def test_grey_specular_greys_the_refined_maps_specular_but_for_its_metal_share(tiny_checkpoint):
-    from mideepbasis.export import EXPORT_METAL_F0
     from mideepbasis.material import grey_dielectric_specular
 
     photo = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(5)) * 0.6 + 0.1
@@ -199,6 +199,6 @@ def test_grey_specular_greys_the_refined_maps_specular_but_for_its_metal_share(t
     coloured = capture(photo, **common).material.to_tensor()
     grey = capture(photo, grey_specular=True, **common).material.to_tensor()
     torch.testing.assert_close(grey[:7], coloured[:7])  # normal, diffuse, roughness as they were
-    expected = grey_dielectric_specular(coloured[3:6], coloured[7:10], EXPORT_METAL_F0)
+    expected = grey_dielectric_specular(coloured[3:6], coloured[7:10], constants.EXPORT_METAL_F0)
     torch.testing.assert_close(grey[7:10], expected, rtol=0, atol=1e-6)
     assert (coloured[7:10].amax(0) - coloured[7:10].amin(0)).max() > 1e-3  # the tiny model's specular has colour
