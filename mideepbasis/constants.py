@@ -90,6 +90,11 @@ ROUGHNESS = slice(6, 7)
 SPECULAR = slice(7, 10)
 REFLECTANCE = slice(3, 10)
 
+#: The lowest specular albedo F0 of a capture's maps (``CaptureConfig.specular_floor``) [linear reflectance]:
+#: water's (index of refraction 1.33), below every real surface's. The procedural generator's and the
+#: shared test set's speculars start above it (0.026, 0.031).
+SPECULAR_FLOOR = 0.02
+
 #: Split sizes of the normal and the reflectance parameters, for ``tensor.split``.
 NORMAL_AND_REFLECTANCE = (3, 7)
 

@@ -72,6 +72,12 @@ class CaptureConfig:
     F0 has no colour. A photo's colour otherwise leaks into the specular map (a green specular on
     real photos)."""
 
+    specular_floor: float = constants.SPECULAR_FLOOR
+    """Lowest specular F0 of the captured maps [linear reflectance]; 0: as the network and the
+    refinement left it. Water's 0.02 is below every real surface's; under it, a refinement that
+    lowers a dark specular leaves it tinted by the one channel the others were clipped below.
+    The refinement itself fits without it."""
+
     tileable: bool = False
     """Make the captured maps wrap around their edges without a seam (``tiling.make_tileable``)."""
 
@@ -177,6 +183,9 @@ class Prediction:
     grey_specular: bool = False
     """Make the maps' specular grey but for each pixel's metallic share (``CaptureConfig.grey_specular``)."""
 
+    specular_floor: float = 0.0
+    """Lowest specular of the maps [linear reflectance] (``CaptureConfig.specular_floor``)."""
+
     @functools.cached_property
     def maps(self) -> torch.Tensor:
         """(B, 10, H, W) the maps at the photo's size."""
@@ -192,11 +201,14 @@ class Prediction:
             for index in range(maps.shape[0]):
                 maps[index, constants.SPECULAR] = grey_dielectric_specular(
                     maps[index, constants.DIFFUSE], maps[index, constants.SPECULAR], constants.EXPORT_METAL_F0)
+        if self.specular_floor > 0.0:
+            maps = maps.clone() if maps is self.output.maps else maps
+            maps[:, constants.SPECULAR] = maps[:, constants.SPECULAR].clamp(min=self.specular_floor)
         return maps
 
     def compose(self, global_bases: torch.Tensor) -> Prediction:
         """This prediction with other (say, refined) global bases."""
-        return Prediction(self.output.compose(global_bases), self.size, self.detail_from, self.grey_specular)
+        return replace(self, output=self.output.compose(global_bases))
 
 
 def predict_small(model: DeepBasisNet, photos: torch.Tensor, lights: torch.Tensor,
@@ -326,7 +338,7 @@ class Capturer:
         prediction = predict_small(self.model, photo.pixels[None], light[None], photo.fov,
                                    self.config.network_resolution, self.config.symmetries)
         return replace(prediction, detail_from=photo.pixels[None] if self.config.detail else None,
-                       grey_specular=self.config.grey_specular)
+                       grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""

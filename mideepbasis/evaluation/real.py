@@ -367,17 +367,15 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
 
     from tqdm import tqdm
 
-    from ..capturing import CaptureConfig, Capturer
+    from ..capturing import Capturer
 
     started = time.perf_counter()
-    from .run import shown_refinement
+    from .run import evaluation_capture_config, shown_refinement
 
-    capture_config = CaptureConfig(**({"symmetries": config.symmetries} if config.symmetries else {}),
-                                   **({"network_resolution": config.network_resolution}
-                                      if config.network_resolution is not None else {}),
-                                   **({"resolution": config.resolution} if config.resolution else {}),
-                                   **({"grey_specular": config.grey_specular} if config.grey_specular is not None else {}),
-                                   refine=shown_refinement(config), detail=config.detail)
+    capture_config = evaluation_capture_config(
+        symmetries=config.symmetries or None, grey_specular=config.grey_specular, specular_floor=config.specular_floor,
+        network_resolution=config.network_resolution, **({"resolution": config.resolution} if config.resolution else {}),
+        refine=shown_refinement(config), detail=config.detail)
     capturer = Capturer(config.model, capture_config)
     folders = scene_folders(config.data)
     if not folders:

@@ -202,3 +202,18 @@ def test_grey_specular_greys_the_refined_maps_specular_but_for_its_metal_share(t
     expected = grey_dielectric_specular(coloured[3:6], coloured[7:10], constants.EXPORT_METAL_F0)
     torch.testing.assert_close(grey[7:10], expected, rtol=0, atol=1e-6)
     assert (coloured[7:10].amax(0) - coloured[7:10].amin(0)).max() > 1e-3  # the tiny model's specular has colour
+
+
+@pytest.mark.parametrize("floor", [constants.SPECULAR_FLOOR, 0.0])
+def test_the_captured_specular_is_floored_and_nothing_else_changes(floor):
+    from .helpers import OracleModel
+
+    truth = material(4)
+    truth[:, 7:10, :, :32] = torch.tensor([0.004, 0.012, 0.008]).view(3, 1, 1)  # under water's F0, tinted
+    photos, _ = flash_photos(truth, torch.tensor([[0.1, 0.2]]))
+    captured = capture(photos[0], model=OracleModel(truth), light=(0.1, 0.2), symmetries=1, detail=False,
+                       refine=RefineConfig(steps=0), specular_floor=floor).material.to_tensor()
+    torch.testing.assert_close(captured[:7], truth[0, :7], rtol=0, atol=1e-5)
+    torch.testing.assert_close(captured[7:], truth[0, 7:].clamp(min=floor), rtol=0, atol=1e-5)
+    if floor:
+        assert captured[7:, :, :32].eq(floor).all()  # the dark tinted part is now grey
