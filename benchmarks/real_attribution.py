@@ -35,7 +35,7 @@ from mideepbasis import constants
 from mideepbasis.capturing import Capturer
 from mideepbasis.evaluation.real import (CAPTURE_ROW, UNREFINED_ROW, load_scene, materials_of_scene, scene_folders,
                                          scene_photos, score_rerenders)
-from mideepbasis.geometry import unit_vectors
+from mideepbasis.geometry import scaled_slopes
 
 #: The capture rows compared (capture's default, and without its refinement).
 ROWS = (CAPTURE_ROW, UNREFINED_ROW)
@@ -44,9 +44,7 @@ ROWS = (CAPTURE_ROW, UNREFINED_ROW)
 def tilted(maps: torch.Tensor, tilt: float) -> torch.Tensor:
     """Maps (10, H, W) whose normals' x and y are multiplied by ``tilt``, then renormalised."""
     result = maps.clone()
-    normals = result[constants.NORMAL]
-    normals[0:2] *= tilt
-    result[constants.NORMAL] = unit_vectors(normals, dim=0)
+    result[constants.NORMAL] = scaled_slopes(maps[constants.NORMAL], tilt, dim=0)
     return result
 
 

@@ -51,6 +51,17 @@ def unit_vectors(vectors: torch.Tensor, dim: int = -1, eps: float = 1e-12) -> to
     return vectors / vector_length(vectors, dim, keepdim=True).clamp(min=eps)
 
 
+def scaled_slopes(normals: torch.Tensor, strength: float, dim: int = -1) -> torch.Tensor:
+    """Unit normals whose slopes are ``strength`` times the given ones: x and y scaled, then the
+    vectors made unit again (a normal map's strength; 0 is flat, 1 leaves them).
+
+    Args:
+        normals: (..., 3, ...) with the three components along ``dim``.
+    """
+    x, y, z = normals.unbind(dim)
+    return unit_vectors(torch.stack([x * strength, y * strength, z], dim=dim), dim=dim)
+
+
 def offset_angle_deg(offsets: torch.Tensor, fov: float = constants.DEFAULT_FOV_DEG) -> torch.Tensor:
     """Angle atan(|t| / H) of an offset as seen from the sample centre [deg], shape (...)."""
     return torch.rad2deg(torch.atan(torch.linalg.vector_norm(offsets, dim=-1) / constants.camera_height(fov)))

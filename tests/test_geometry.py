@@ -51,3 +51,15 @@ def test_vector_lengths_and_unit_vectors_along_any_dimension(dim):
     unit = geometry.unit_vectors(vectors, dim)
     expected = vectors.double().numpy() / np.maximum(reference, 1e-12)
     np.testing.assert_allclose(unit.numpy(), expected, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("strength", [0.0, 0.5, 1.0, 2.0])
+def test_scaled_slopes_scale_a_height_field_s_gradient(strength):
+    """Normals of h(x, y) = a x + b y are (-a, -b, 1) / |.|: their slopes -n_x / n_z, -n_y / n_z are the
+    gradient, which a strength s makes s a, s b."""
+    gradients = torch.tensor([[0.3, -0.7], [0.0, 0.0], [2.0, 1.0]])
+    normals = torch.cat([-gradients, torch.ones(3, 1)], dim=1)
+    normals = normals / normals.norm(dim=1, keepdim=True)
+    scaled = geometry.scaled_slopes(normals.T[:, None], strength, dim=0)[:, 0].T  # components along dim 0
+    torch.testing.assert_close(scaled.norm(dim=1), torch.ones(3))
+    torch.testing.assert_close(-scaled[:, :2] / scaled[:, 2:], strength * gradients, rtol=1e-5, atol=1e-6)

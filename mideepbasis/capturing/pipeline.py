@@ -72,6 +72,11 @@ class CaptureConfig:
     F0 has no colour. A photo's colour otherwise leaks into the specular map (a green specular on
     real photos)."""
 
+    normal_strength: float = constants.NORMAL_STRENGTH
+    """The factor of the normals' slopes (``geometry.scaled_slopes``): 1 the network's relief, 0
+    flat. The refinement renders the normals at this strength; it scales the detail step's finer
+    relief too, whose gains follow the network's relief."""
+
     specular_floor: float = constants.SPECULAR_FLOOR
     """Lowest specular F0 of the captured maps [linear reflectance]; 0: as the network and the
     refinement left it. Water's 0.02 is below every real surface's; under it, a refinement that
@@ -186,6 +191,9 @@ class Prediction:
     specular_floor: float = 0.0
     """Lowest specular of the maps [linear reflectance] (``CaptureConfig.specular_floor``)."""
 
+    normal_strength: float = 1.0
+    """The factor of the normals' slopes (``CaptureConfig.normal_strength``)."""
+
     @functools.cached_property
     def maps(self) -> torch.Tensor:
         """(B, 10, H, W) the maps at the photo's size."""
@@ -201,6 +209,9 @@ class Prediction:
             for index in range(maps.shape[0]):
                 maps[index, constants.SPECULAR] = grey_dielectric_specular(
                     maps[index, constants.DIFFUSE], maps[index, constants.SPECULAR], constants.EXPORT_METAL_F0)
+        if self.normal_strength != 1.0:
+            maps = maps.clone() if maps is self.output.maps else maps
+            maps[:, constants.NORMAL] = geometry.scaled_slopes(maps[:, constants.NORMAL], self.normal_strength, dim=1)
         if self.specular_floor > 0.0:
             maps = maps.clone() if maps is self.output.maps else maps
             maps[:, constants.SPECULAR] = maps[:, constants.SPECULAR].clamp(min=self.specular_floor)
@@ -338,7 +349,8 @@ class Capturer:
         prediction = predict_small(self.model, photo.pixels[None], light[None], photo.fov,
                                    self.config.network_resolution, self.config.symmetries)
         return replace(prediction, detail_from=photo.pixels[None] if self.config.detail else None,
-                       grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor)
+                       grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
+                       normal_strength=self.config.normal_strength)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""
@@ -362,7 +374,7 @@ class Capturer:
             prediction = replace(prediction, output=prediction.output.unsaturated())
         refined, losses = refine_global_bases(prediction.output, photo.pixels, light, photo.fov, self.convention,
                                               self.model.config.plane_extent, self.config.refine, progress,
-                                              size=prediction.size)
+                                              size=prediction.size, normal_strength=prediction.normal_strength)
         return prediction.compose(refined), losses
 
     def capture(self, image: str | Path | torch.Tensor, progress: bool = False) -> CaptureResult:

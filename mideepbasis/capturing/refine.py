@@ -22,6 +22,7 @@ import torch.nn.functional as F
 
 from .. import constants
 from ..configs import positive_int
+from ..geometry import scaled_slopes
 from ..imageio import linear_to_srgb
 from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps
 from ..resampling import downsample
@@ -152,7 +153,8 @@ def refinement_inputs(output: DeepBasisOutput, resolution: int, size: tuple[int,
 
 def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: torch.Tensor, fov: float,
                         convention: str, extent: float = 1.0, config: RefineConfig = RefineConfig(),
-                        progress: bool = False, size: tuple[int, int] | None = None) -> tuple[torch.Tensor, list[float]]:
+                        progress: bool = False, size: tuple[int, int] | None = None,
+                        normal_strength: float = 1.0) -> tuple[torch.Tensor, list[float]]:
     """Optimise the global bases so the rendering matches the photo; weights and deviations stay fixed.
 
     The loss is the mean L1 between the rendering and the photo, plus ``config.prior`` times the
@@ -166,6 +168,8 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
         config: steps, render resolution, learning rate, whether the normals move, the prior.
         size: the size (H, W) the prediction is shown at, when its tensors are smaller (the
             network's resolution): ``refinement_inputs``.
+        normal_strength: the factor of the blended normals' slopes in the renders
+            (``geometry.scaled_slopes``; ``CaptureConfig.normal_strength``).
 
     Returns:
         ((1, N, 10) refined global bases, signed space; the loss at every step).
@@ -182,7 +186,7 @@ def refine_global_bases(output: DeepBasisOutput, photo: torch.Tensor, light: tor
         movable[constants.MAP_SLICES[name]] = 1.0
     fit = _fit_drjit if render_backend() == "mitsuba" else _fit_torch
     return fit(weights, deviations, predicted, movable, target, light, fov, convention, extent, config, progress,
-               *loss_settings(photo, predicted, config))
+               *loss_settings(photo, predicted, config), normal_strength=normal_strength)
 
 
 def loss_settings(photo: torch.Tensor, predicted: torch.Tensor, config: RefineConfig
@@ -232,7 +236,7 @@ def tie_specular_gradient(gradient: torch.Tensor, tied: torch.Tensor) -> torch.T
 def _fit_drjit(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch.Tensor, movable: torch.Tensor,
                target: torch.Tensor, light: torch.Tensor, fov: float, convention: str, extent: float,
                config: RefineConfig, progress: bool, pixel_weights: torch.Tensor,
-               tied: torch.Tensor) -> tuple[torch.Tensor, list[float]]:
+               tied: torch.Tensor, normal_strength: float = 1.0) -> tuple[torch.Tensor, list[float]]:
     """The refinement's loop as one frozen drjit step (``render.fit``): the Mitsuba backend's."""
     from tqdm import tqdm
 
@@ -244,14 +248,15 @@ def _fit_drjit(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
                                        target[0].numpy(), light.numpy(), geometry.flash_intensity(fov, convention),
                                        convention, extent, config.steps, config.lr, config.prior, progress=bar,
                                        pixel_weights=pixel_weights[0].numpy(), tied=tied.numpy(),
-                                       encoded_loss=config.encoded_loss, bound=basis_bound(config))
+                                       encoded_loss=config.encoded_loss, bound=basis_bound(config),
+                                       normal_strength=normal_strength)
     return torch.from_numpy(refined)[None], losses
 
 
 def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch.Tensor, movable: torch.Tensor,
                target: torch.Tensor, light: torch.Tensor, fov: float, convention: str, extent: float,
                config: RefineConfig, progress: bool, pixel_weights: torch.Tensor,
-               tied: torch.Tensor) -> tuple[torch.Tensor, list[float]]:
+               tied: torch.Tensor, normal_strength: float = 1.0) -> tuple[torch.Tensor, list[float]]:
     """The refinement's loop in torch, rendering through ``render_flash`` (the torch backend's;
     the reference of ``_fit_drjit``)."""
     from tqdm import tqdm
@@ -288,6 +293,9 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
         for _ in tqdm(range(config.steps), desc="refining", unit="step", disable=not progress):
             current = masked(global_bases)
             maps = to_maps(blended(current))
+            if normal_strength != 1.0:
+                maps = torch.cat([scaled_slopes(maps[:, constants.NORMAL], normal_strength, dim=1),
+                                  maps[:, constants.REFLECTANCE]], dim=1)
             rendered = render_flash(maps, lights, fov=fov, convention=convention, extent=extent)[:, 0].clamp(0.0, 1.0)
             if config.encoded_loss:
                 rendered = encoded(rendered)

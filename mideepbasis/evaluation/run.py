@@ -94,6 +94,10 @@ class EvaluationConfig:
     """Lowest specular of the captured maps [linear reflectance], as ``capture --specular-floor``
     (``CaptureConfig.specular_floor``; None: capture's default, 0: none)."""
 
+    normal_strength: float | None = None
+    """The factor of the captured normals' slopes, as ``capture --normal-strength``
+    (``CaptureConfig.normal_strength``; None: capture's default)."""
+
     symmetries: int | None = field(default=None, metadata={"parse": symmetry_count, "metavar": "1|2|4|8"})
     """Turns and mirrorings of each photo the model's prediction is averaged over (1, 2, 4 or 8;
     None: capture's default, ``CaptureConfig.symmetries``)."""
@@ -156,19 +160,21 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
 
 
 def evaluation_capture_config(symmetries: int | None = None, grey_specular: bool | None = None,
-                    specular_floor: float | None = None, **fields):
+                              specular_floor: float | None = None, normal_strength: float | None = None, **fields):
     """The capture settings of an evaluation: capture's own where the evaluation leaves one None."""
     from ..capturing import CaptureConfig
 
     given = {name: value for name, value in (("symmetries", symmetries), ("grey_specular", grey_specular),
-                                             ("specular_floor", specular_floor)) if value is not None}
+                                             ("specular_floor", specular_floor), ("normal_strength", normal_strength))
+             if value is not None}
     return CaptureConfig(**fields, **given)
 
 
 def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine: RefineConfig,
                  progress: bool, label: str, network_resolution: int | None = None,
                  symmetries: int | None = None, detail: bool = True, grey_specular: bool | None = None,
-                 specular_floor: float | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+                 specular_floor: float | None = None, normal_strength: float | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine.steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
     import time
@@ -180,7 +186,7 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
     convention = model.config.convention
     capturer = Capturer(model, evaluation_capture_config(
         fov=fov, network_resolution=network_resolution, symmetries=symmetries, refine=refine, detail=detail,
-        grey_specular=grey_specular, specular_floor=specular_floor))
+        grey_specular=grey_specular, specular_floor=specular_floor, normal_strength=normal_strength))
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
@@ -257,7 +263,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     steps = refine.steps
     plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, refine, progress, "model",
                                            config.network_resolution, config.symmetries, config.detail,
-                                           config.grey_specular, config.specular_floor)
+                                           config.grey_specular, config.specular_floor, config.normal_strength)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
     kept = "" if refine.normals else ", normals kept"

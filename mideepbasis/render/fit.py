@@ -83,6 +83,9 @@ class FitInputs:
     prior: mi.Float
     """1: the weight of the mean L1 pull of the bases toward the predicted ones."""
 
+    normal_strength: mi.Float
+    """1: the factor of the blended normals' slopes (``geometry.scaled_slopes``)."""
+
     normal: mi.Vector3f
     """P: the blended unit normal of the predicted bases where the normals stay (``fixed_normal``);
     a single unused zero where they move."""
@@ -96,7 +99,7 @@ class FitInputs:
 
     DRJIT_STRUCT = {"weights": list, "deviations": mi.Float, "predicted": mi.Float, "movable": mi.Float,
                     "target": mi.Color3f, "light": mi.Point3f, "intensity": mi.Float, "lr": mi.Float, "bound": mi.Float,
-                    "prior": mi.Float, "normal": mi.Vector3f, "pixel_weights": mi.Float, "tied": mi.Float}
+                    "prior": mi.Float, "normal_strength": mi.Float, "normal": mi.Vector3f, "pixel_weights": mi.Float, "tied": mi.Float}
 
 
 def _specular_slots() -> np.ndarray:
@@ -110,9 +113,10 @@ def _specular_slots() -> np.ndarray:
 REFLECTANCE_CHANNELS = range(constants.BASIS_CHANNELS)[constants.REFLECTANCE]
 
 
-def _blended_normal(values: mi.Float, weights: list, bases: int, pixels: int) -> mi.Vector3f:
+def _blended_normal(values: mi.Float, weights: list, bases: int, pixels: int, strength: mi.Float) -> mi.Vector3f:
     """The blended unit normal per pixel (``to_maps`` of ``compose_bases``) of the per-pixel basis
-    values ``values`` (K * P, value k of pixel p at k * P + p)."""
+    values ``values`` (K * P, value k of pixel p at k * P + p), its slopes times ``strength``
+    (``geometry.scaled_slopes``)."""
     channels = constants.BASIS_CHANNELS
     index = dr.arange(mi.UInt32, pixels)
     blended = [None] * 3
@@ -123,6 +127,8 @@ def _blended_normal(values: mi.Float, weights: list, bases: int, pixels: int) ->
             term = weights[basis] * dr.clip(normal[c], -1.0, 1.0)
             blended[c] = term if blended[c] is None else blended[c] + term
     normal = mi.Vector3f(blended[0], blended[1], dr.maximum(blended[2], 0.0))
+    normal = normal / dr.sqrt(dr.maximum(dr.squared_norm(normal), 1e-12))
+    normal = mi.Vector3f(normal.x * strength, normal.y * strength, normal.z)
     return normal / dr.sqrt(dr.maximum(dr.squared_norm(normal), 1e-12))
 
 
@@ -131,7 +137,7 @@ def fixed_normal(data: FitInputs, bases: int, pixels: int) -> mi.Vector3f:
     that keeps the normals renders."""
     channels = constants.BASIS_CHANNELS
     values = dr.gather(mi.Float, data.predicted, dr.arange(mi.UInt32, bases * channels * pixels) // pixels)
-    normal = _blended_normal(values + data.deviations, data.weights, bases, pixels)
+    normal = _blended_normal(values + data.deviations, data.weights, bases, pixels, data.normal_strength)
     dr.eval(normal)
     return normal
 
@@ -152,7 +158,7 @@ def _blend(current: mi.Float, data: FitInputs, bases: int, pixels: int, normals_
     packed = dr.gather(mi.Float, current, source)
     dr.enable_grad(packed)
     values = packed + data.deviations  # the blended channels' deviations, in the same order
-    normal = _blended_normal(values, data.weights, bases, pixels) if normals_move else data.normal
+    normal = _blended_normal(values, data.weights, bases, pixels, data.normal_strength) if normals_move else data.normal
     index = dr.arange(mi.UInt32, pixels)
     rest = [None] * len(REFLECTANCE_CHANNELS)
     for basis in range(bases):
@@ -243,7 +249,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      steps: int, lr: float, prior: float, progress=None,
                      every_channel: bool = False, pixel_weights: np.ndarray | None = None,
                      tied: np.ndarray | None = None, encoded_loss: bool = False,
-                     bound: float = 1.0) -> tuple[np.ndarray, list[float]]:
+                     bound: float = 1.0, normal_strength: float = 1.0) -> tuple[np.ndarray, list[float]]:
     """Adam on the global bases so the plugin's render of the blend matches the photo.
 
     Args:
@@ -257,7 +263,8 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
             normals stay (the quicker path's reference in the tests); pixel_weights: (r, r) each
             pixel's weight in the loss, mean 1 (None: all 1); tied: (N,) whether each basis's three
             specular channels move together (None: none); encoded_loss: compare sRGB-encoded
-            values (the target given linear); bound: the largest magnitude of a basis value.
+            values (the target given linear); bound: the largest magnitude of a basis value;
+            normal_strength: the factor of the blended normals' slopes the renders use.
 
     Returns:
         ((N, 10) the refined bases, the loss at every step).
@@ -273,7 +280,7 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      target=mi.Color3f(*[as_float(channel) for channel in target]),
                      light=mi.Point3f(*[float(x) for x in np.asarray(light).reshape(3)]),
                      intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), bound=mi.Float(float(bound)),
-                     prior=mi.Float(float(prior)),
+                     prior=mi.Float(float(prior)), normal_strength=mi.Float(float(normal_strength)),
                      normal=dr.zeros(mi.Vector3f, 1),
                      pixel_weights=as_float(np.ones((size, size)) if pixel_weights is None else pixel_weights),
                      tied=as_float(np.zeros((bases, constants.BASIS_CHANNELS)) if tied is None else
@@ -287,7 +294,8 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     free = as_float(predicted)
     first_moment, second_moment = as_float(np.zeros(count)), as_float(np.zeros(count))
     # Evaluated inputs (not literals): every call then matches the same recordings.
-    dr.make_opaque(free, first_moment, second_moment, data.light, data.intensity, data.lr, data.bound, data.prior)
+    dr.make_opaque(free, first_moment, second_moment, data.light, data.intensity, data.lr, data.bound, data.prior,
+                   data.normal_strength)
     # The plugin is made outside the recording: made inside, its arrays would be neither inputs nor
     # the step's own, and the first refinement in a process would fail to record.
     flash_renderer(convention)

@@ -75,10 +75,13 @@ REFINE_LOOP_TOLERANCES = {"bases": 2e-3, "loss": 1e-5}
 @pytest.mark.parametrize("options", [{"normals": False}, {"normals": True}, {"normals": False, "prior": 0.5},
                                      {"skip_clipped": True, "achromatic_specular": True},
                                      {"encoded_loss": True, "prior": 0.2},
-                                     {"normals": True, "achromatic_specular": True}, {"unclamped_moves": False}])
+                                     {"normals": True, "achromatic_specular": True}, {"unclamped_moves": False},
+                                     {"normals": False, "normal_strength": 0.5}, {"normals": True, "normal_strength": 0.5}])
 def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
     from mideepbasis.capturing import refine as refinement
 
+    options = dict(options)
+    strength = options.pop("normal_strength", 1.0)
     truth = material(5)
     photos, lights = flash_photos(truth, torch.tensor([[0.2, 0.1]]))
     output = OracleModel(truth)(None)
@@ -97,9 +100,11 @@ def test_the_frozen_drjit_refinement_loop_is_the_torch_loop(options):
                  *settings)
     if config.skip_clipped:
         assert 0 < int((settings[0] == 0).sum()) < settings[0].numel() // 2
-    reference, reference_losses = refinement._fit_torch(*arguments)
+    reference, reference_losses = refinement._fit_torch(*arguments, normal_strength=strength)
+    if strength != 1.0:  # the renders see the flatter normals: another fit
+        assert (refinement._fit_torch(*arguments)[0] - reference).abs().max() > 1e-3
     for _ in range(2):  # recorded at the first call, replayed at the second
-        bases, losses = refinement._fit_drjit(*arguments)
+        bases, losses = refinement._fit_drjit(*arguments, normal_strength=strength)
         assert (bases - reference).abs().max() < REFINE_LOOP_TOLERANCES["bases"]
         assert np.abs(np.subtract(losses, reference_losses)).max() < REFINE_LOOP_TOLERANCES["loss"]
     assert (reference - predicted).abs().max() > 0.05  # the bases moved
@@ -252,7 +257,9 @@ def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_an
     torch.manual_seed(0)
     path = save_checkpoint(tmp_path / "m.safetensors", DeepBasisNet(preset("tiny")).eval(),
                            metadata={"training": {"config": {"size": 32}}})
-    capturer = Capturer(load_model(path), CaptureConfig(refine=RefineConfig(steps=5, resolution=16), detail=False))
+    # The network's own maps: the capture's finishing (normal strength, specular floor) left out.
+    capturer = Capturer(load_model(path), CaptureConfig(refine=RefineConfig(steps=5, resolution=16), detail=False,
+                                                        normal_strength=1.0, specular_floor=0.0))
     photos, lights = flash_photos(material(7, size=64), torch.tensor([[0.1, -0.2]]))
     upsampled = predict(capturer.model, photos[0][None], lights,  # the photo as the capturer passes it
                         symmetries=capturer.config.symmetries)
