@@ -202,18 +202,18 @@ class Prediction:
             from .detail import add_detail
 
             maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps)
+        finishing = self.grey_specular or self.normal_strength != 1.0 or self.specular_floor > 0.0
+        if finishing and maps is self.output.maps:
+            maps = maps.clone()  # the output's own maps stay as the network gave them
         if self.grey_specular:
             from ..material import grey_dielectric_specular
 
-            maps = maps.clone() if maps is self.output.maps else maps
             for index in range(maps.shape[0]):
                 maps[index, constants.SPECULAR] = grey_dielectric_specular(
                     maps[index, constants.DIFFUSE], maps[index, constants.SPECULAR], constants.EXPORT_METAL_F0)
         if self.normal_strength != 1.0:
-            maps = maps.clone() if maps is self.output.maps else maps
             maps[:, constants.NORMAL] = geometry.scaled_slopes(maps[:, constants.NORMAL], self.normal_strength, dim=1)
         if self.specular_floor > 0.0:
-            maps = maps.clone() if maps is self.output.maps else maps
             maps[:, constants.SPECULAR] = maps[:, constants.SPECULAR].clamp(min=self.specular_floor)
         return maps
 
