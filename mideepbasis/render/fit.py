@@ -99,7 +99,8 @@ class FitInputs:
 
     DRJIT_STRUCT = {"weights": list, "deviations": mi.Float, "predicted": mi.Float, "movable": mi.Float,
                     "target": mi.Color3f, "light": mi.Point3f, "intensity": mi.Float, "lr": mi.Float, "bound": mi.Float,
-                    "prior": mi.Float, "normal_strength": mi.Float, "normal": mi.Vector3f, "pixel_weights": mi.Float, "tied": mi.Float}
+                    "prior": mi.Float, "normal_strength": mi.Float, "normal": mi.Vector3f, "pixel_weights": mi.Float,
+                    "tied": mi.Float}
 
 
 def _specular_slots() -> np.ndarray:
