@@ -61,6 +61,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def unit_share(text: str) -> float:
+    """A number in [0, 1], for a field's ``metadata={"parse": unit_share}``."""
+    value = float(text)
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"must lie in [0, 1], got {value:g}")
+    return value
+
+
 class _JoinRepeated(argparse.Action):
     """A variable-length tuple option given more than once: its values joined in order."""
 

@@ -101,6 +101,16 @@ SPECULAR_FLOOR = 0.02
 #: (0.0657 -> 0.0660; benchmarks/README.md, refinement_real).
 NORMAL_STRENGTH = 0.75
 
+#: The specular lobe's channels, roughness and specular (contiguous in the layout).
+LOBE = slice(6, 10)
+
+#: The share of the network's per-pixel variation of the specular lobe that a capture keeps
+#: (``CaptureConfig.lobe_variation``). One flash photo shows the lobe only near its highlight, and there the
+#: local unit's roughness and specular deviations follow the highlight more than the surface. 0.5 lowered the
+#: held-out phone scenes' re-rendering error (0.0893 -> 0.0885; 0: 0.0901, 0.25: 0.0888; benchmarks/README.md,
+#: lobe_variation).
+LOBE_VARIATION = 0.5
+
 #: Split sizes of the normal and the reflectance parameters, for ``tensor.split``.
 NORMAL_AND_REFLECTANCE = (3, 7)
 

@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from .. import constants, geometry
+from ..configs import unit_share
 from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
@@ -83,6 +84,12 @@ class CaptureConfig:
     lowers a dark specular leaves it tinted by the one channel the others were clipped below.
     The refinement itself fits without it."""
 
+    lobe_variation: float = field(default=constants.LOBE_VARIATION, metadata={"parse": unit_share})
+    """The share of the network's per-pixel variation of each basis's roughness and specular that
+    the capture keeps (``DeepBasisOutput.with_shrunk_deviations``): 1 all of it, 0 one roughness
+    and specular per basis. One flash photo shows the specular lobe only near its highlight, and
+    the local unit's lobe deviations follow where the highlight fell more than the surface."""
+
     tileable: bool = False
     """Make the captured maps wrap around their edges without a seam (``tiling.make_tileable``)."""
 
@@ -92,6 +99,8 @@ class CaptureConfig:
 
     def __post_init__(self):
         check_symmetries(self.symmetries)  # now, not at the first prediction
+        if not 0.0 <= self.lobe_variation <= 1.0:
+            raise ValueError(f"lobe_variation must lie in [0, 1], got {self.lobe_variation:g}")
 
 
 @dataclass(frozen=True)
@@ -348,7 +357,8 @@ class Capturer:
         light = flash_position(offset, photo.fov)
         prediction = predict_small(self.model, photo.pixels[None], light[None], photo.fov,
                                    self.config.network_resolution, self.config.symmetries)
-        return replace(prediction, detail_from=photo.pixels[None] if self.config.detail else None,
+        output = prediction.output.with_shrunk_deviations(constants.LOBE, self.config.lobe_variation)
+        return replace(prediction, output=output, detail_from=photo.pixels[None] if self.config.detail else None,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
                        normal_strength=self.config.normal_strength)
 

@@ -373,9 +373,7 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
     from .run import evaluation_capture_config, shown_refinement
 
     capture_config = evaluation_capture_config(
-        symmetries=config.symmetries or None, grey_specular=config.grey_specular, specular_floor=config.specular_floor,
-        normal_strength=config.normal_strength, network_resolution=config.network_resolution,
-        refine=shown_refinement(config), detail=config.detail,
+        config, network_resolution=config.network_resolution, refine=shown_refinement(config), detail=config.detail,
         **({"resolution": config.resolution} if config.resolution else {}))
     capturer = Capturer(config.model, capture_config)
     folders = scene_folders(config.data)

@@ -13,7 +13,7 @@ import torch
 
 from .. import constants
 from ..capturing.refine import RefineConfig
-from ..configs import positive_int
+from ..configs import positive_int, unit_share
 from ..errors import InputError
 from .metrics import LPIPS, light_error_deg, map_rmse, rerender_rmse, score, summary_scores, trivial_baseline
 from .protocol import (RERENDER_COUNT, ROUGHNESS_GROUPS, evaluation_offsets, flash_photos, load_evaluation_materials,
@@ -98,6 +98,10 @@ class EvaluationConfig:
     """The factor of the captured normals' slopes, as ``capture --normal-strength``
     (``CaptureConfig.normal_strength``; None: capture's default)."""
 
+    lobe_variation: float | None = field(default=None, metadata={"parse": unit_share})
+    """The share of the network's per-pixel roughness and specular variation kept, as ``capture
+    --lobe-variation`` (``CaptureConfig.lobe_variation``; None: capture's default)."""
+
     symmetries: int | None = field(default=None, metadata={"parse": symmetry_count, "metavar": "1|2|4|8"})
     """Turns and mirrorings of each photo the model's prediction is averaged over (1, 2, 4 or 8;
     None: capture's default, ``CaptureConfig.symmetries``)."""
@@ -159,24 +163,32 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
     return config.refine if config.refine.steps else replace(config.refine, steps=CaptureConfig().refine.steps)
 
 
-def evaluation_capture_config(symmetries: int | None = None, grey_specular: bool | None = None,
-                              specular_floor: float | None = None, normal_strength: float | None = None, **fields):
-    """The capture settings of an evaluation: capture's own where the evaluation leaves one None."""
+#: The fields an evaluation shares with ``CaptureConfig``, None in the evaluation for capture's default.
+SHARED_CAPTURE_FIELDS = ("symmetries", "grey_specular", "specular_floor", "normal_strength", "lobe_variation")
+
+
+def capture_options(config: EvaluationConfig | None) -> dict:
+    """The ``SHARED_CAPTURE_FIELDS`` an evaluation sets (not None): {} for None."""
+    if config is None:
+        return {}
+    return {name: getattr(config, name) for name in SHARED_CAPTURE_FIELDS if getattr(config, name) is not None}
+
+
+def evaluation_capture_config(config: EvaluationConfig | None = None, **fields):
+    """The capture settings of an evaluation: ``fields``, then what ``config`` shares with capture
+    (``capture_options``), then capture's own defaults."""
     from ..capturing import CaptureConfig
 
-    given = {name: value for name, value in (("symmetries", symmetries), ("grey_specular", grey_specular),
-                                             ("specular_floor", specular_floor), ("normal_strength", normal_strength))
-             if value is not None}
-    return CaptureConfig(**fields, **given)
+    return CaptureConfig(**{**fields, **capture_options(config)})
 
 
 def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine: RefineConfig,
-                 progress: bool, label: str, network_resolution: int | None = None,
-                 symmetries: int | None = None, detail: bool = True, grey_specular: bool | None = None,
-                 specular_floor: float | None = None, normal_strength: float | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+                 progress: bool, label: str, network_resolution: int | None = None, detail: bool = True,
+                 config: EvaluationConfig | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine.steps``) with refinement, from one search
-    and one prediction per material, and per-material details (light error [deg], passes, seconds)."""
+    and one prediction per material, and per-material details (light error [deg], passes, seconds);
+    ``config``: the evaluation whose capture options (``capture_options``) apply (None: capture's
+    defaults)."""
     import time
 
     from tqdm import tqdm
@@ -184,9 +196,8 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
     from ..capturing import Capturer, Photo
 
     convention = model.config.convention
-    capturer = Capturer(model, evaluation_capture_config(
-        fov=fov, network_resolution=network_resolution, symmetries=symmetries, refine=refine, detail=detail,
-        grey_specular=grey_specular, specular_floor=specular_floor, normal_strength=normal_strength))
+    capturer = Capturer(model, evaluation_capture_config(config, fov=fov, network_resolution=network_resolution,
+                                                         refine=refine, detail=detail))
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
@@ -262,8 +273,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     refine = shown_refinement(config) if config.baselines else config.refine
     steps = refine.steps
     plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, refine, progress, "model",
-                                           config.network_resolution, config.symmetries, config.detail,
-                                           config.grey_specular, config.specular_floor, config.normal_strength)
+                                           config.network_resolution, config.detail, config)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
     kept = "" if refine.normals else ", normals kept"
@@ -287,7 +297,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
             start = time.perf_counter()
             predictions["direct (no bases)"], _, _ = _predict_all(
                 direct, truth, offsets, config.fov, "known", RefineConfig(steps=0), progress, "direct",
-                network_resolution=config.network_resolution, symmetries=config.symmetries, detail=config.detail)
+                network_resolution=config.network_resolution, detail=config.detail, config=config)
             rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
             per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention,
                                                       lpips, stored=stored)
@@ -351,8 +361,8 @@ def lighting_accuracy(model, truth: torch.Tensor, config: EvaluationConfig, out:
     from ..data.synth import sample_offsets
 
     convention = model.config.convention
-    capturer = Capturer(model, evaluation_capture_config(fov=config.fov, network_resolution=config.network_resolution,
-                                                         symmetries=config.symmetries))
+    capturer = Capturer(model, evaluation_capture_config(config, fov=config.fov,
+                                                         network_resolution=config.network_resolution))
     errors = {group: [] for group in ROUGHNESS_GROUPS}
     for index in tqdm(range(len(truth)), desc="lighting search", unit="material", disable=not progress):
         roughness = float(truth[index, 6].mean())

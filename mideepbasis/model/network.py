@@ -454,6 +454,23 @@ class DeepBasisOutput:
         deviations[:, :, reflectance] = (start + self.deviations[:, :, reflectance]).clamp(-1.0, 1.0) - start
         return replace(self, deviations=deviations)
 
+    def with_shrunk_deviations(self, channels: slice, share: float) -> DeepBasisOutput:
+        """This output with each basis's local deviations of ``channels`` pulled toward their mean
+        over the pixels where the basis weighs: ``mean + share (deviation - mean)``, the mean
+        weighted by the basis's blending weights. 1 keeps them, 0 leaves each basis one value
+        there, its global basis plus that mean. The deviations are first cut to what their global
+        basis leaves inside the signed space (``unsaturated``), so the mean is of what the maps show."""
+        if share == 1.0 or self.deviations is None or self.weights is None:
+            return self
+        output = self.unsaturated()
+        deviations = output.deviations.clone()
+        part = deviations[:, :, channels]  # (B, N, C, H, W)
+        weights = self.weights.to(part)[:, :, None]
+        mean = (part * weights).sum(dim=(-2, -1), keepdim=True) / weights.sum(dim=(-2, -1), keepdim=True).clamp(min=1e-6)
+        deviations[:, :, channels] = mean + share * (part - mean)
+        return DeepBasisOutput.from_bases(self.weights, self.global_bases, deviations, keep_bases=False,
+                                          error=self.error, extras=self.extras)
+
     def crop(self, height: int, width: int) -> DeepBasisOutput:
         """The top-left height x width pixels of every per-pixel tensor."""
         def crop(value):

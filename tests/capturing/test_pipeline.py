@@ -212,7 +212,8 @@ def test_the_captured_specular_is_floored_and_nothing_else_changes(floor):
     truth[:, 7:10, :, :32] = torch.tensor([0.004, 0.012, 0.008]).view(3, 1, 1)  # under water's F0, tinted
     photos, _ = flash_photos(truth, torch.tensor([[0.1, 0.2]]))
     captured = capture(photos[0], model=OracleModel(truth), light=(0.1, 0.2), symmetries=1, detail=False,
-                       refine=RefineConfig(steps=0), specular_floor=floor, normal_strength=1.0).material.to_tensor()
+                       refine=RefineConfig(steps=0), specular_floor=floor, normal_strength=1.0,
+                       lobe_variation=1.0).material.to_tensor()
     torch.testing.assert_close(captured[:7], truth[0, :7], rtol=0, atol=1e-5)
     torch.testing.assert_close(captured[7:], truth[0, 7:].clamp(min=floor), rtol=0, atol=1e-5)
     if floor:
@@ -225,10 +226,28 @@ def test_the_normal_strength_scales_the_captured_slopes_and_nothing_else():
     truth = material(4)
     photos, _ = flash_photos(truth, torch.tensor([[0.1, 0.2]]))
     common = dict(model=OracleModel(truth), light=(0.1, 0.2), symmetries=1, detail=False, specular_floor=0.0,
-                  refine=RefineConfig(steps=0))
+                  lobe_variation=1.0, refine=RefineConfig(steps=0))
     full = capture(photos[0], normal_strength=1.0, **common).material.to_tensor()
     half = capture(photos[0], normal_strength=0.5, **common).material.to_tensor()
     torch.testing.assert_close(half[3:], full[3:], rtol=0, atol=0)
     slopes = lambda maps: maps[:2] / maps[2:3]  # noqa: E731
     torch.testing.assert_close(slopes(half), 0.5 * slopes(full), rtol=1e-4, atol=1e-5)
     assert slopes(full).abs().max() > 0.1  # the material has relief to scale
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5])
+def test_the_lobe_variation_pulls_the_captured_roughness_and_specular_toward_their_means(share):
+    from .helpers import OracleModel
+
+    truth = material(4)
+    truth[:, 7:10, :, :32] = torch.tensor([0.10, 0.12, 0.14]).view(3, 1, 1)  # a second, glossier half
+    photos, _ = flash_photos(truth, torch.tensor([[0.1, 0.2]]))
+    common = dict(model=OracleModel(truth), light=(0.1, 0.2), symmetries=1, detail=False, specular_floor=0.0,
+                  normal_strength=1.0, refine=RefineConfig(steps=0))
+    captured = capture(photos[0], lobe_variation=share, **common).material.to_tensor()
+    # The oracle has one basis of weight 1: its mean is the map's mean over the image.
+    lobe = truth[0, 6:]
+    expected = lobe.mean(dim=(1, 2), keepdim=True) + share * (lobe - lobe.mean(dim=(1, 2), keepdim=True))
+    torch.testing.assert_close(captured[6:], expected, rtol=0, atol=1e-5)
+    torch.testing.assert_close(captured[:6], truth[0, :6], rtol=0, atol=1e-5)
+    assert float(lobe.std(dim=(1, 2)).min()) > 0.01  # the truth's lobe varies

@@ -9,6 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from mideepbasis import constants
 from mideepbasis.capturing import CaptureConfig, Capturer, Photo, RefineConfig, predict, refine_global_bases
 from mideepbasis.evaluation import flash_photos
 from mideepbasis.model.checkpoint import load_model, save_checkpoint
@@ -143,6 +144,34 @@ def test_unsaturated_deviations_keep_the_maps_and_let_every_pixel_of_a_basis_mov
     assert moved[0, torch.arange(10) != 8].abs().max() < 1e-6
 
 
+@pytest.mark.parametrize("share", [0.0, 0.5, 1.0])
+def test_shrunk_deviations_pull_each_basis_lobe_toward_its_weighted_mean(share):
+    generator = torch.Generator().manual_seed(11)
+    weights = torch.softmax(3 * torch.randn(1, 3, 16, 16, generator=generator), dim=1)
+    global_bases = torch.rand(1, 3, 10, generator=generator) * 1.6 - 0.8
+    deviations = torch.randn(1, 3, 10, 16, 16, generator=generator) * 0.6  # some past the bounds
+    output = DeepBasisOutput.from_bases(weights, global_bases, deviations)
+    shrunk = output.with_shrunk_deviations(constants.LOBE, share)
+    # By hand, basis by basis and channel by channel: what the maps showed, its weighted mean, the pull.
+    for basis in range(3):
+        for channel in range(10):
+            # A reflectance channel (3 on) is shown clipped to the signed space.
+            visible = (lambda value: value.clamp(-1, 1)) if channel >= 3 else (lambda value: value)  # noqa: E731
+            shown = visible(global_bases[0, basis, channel] + deviations[0, basis, channel])
+            if channel in range(6, 10):
+                weight = weights[0, basis]
+                mean = (shown * weight).sum() / weight.sum()
+                shown = mean + share * (shown - mean)
+            torch.testing.assert_close(visible(global_bases[0, basis, channel] + shrunk.deviations[0, basis, channel]),
+                                       shown, atol=1e-6, rtol=0)
+    torch.testing.assert_close(shrunk.global_bases, global_bases)
+    torch.testing.assert_close(shrunk.maps[:, :6], output.maps[:, :6], atol=1e-6, rtol=0)
+    if share == 1.0:
+        torch.testing.assert_close(shrunk.maps, output.maps, atol=1e-6, rtol=0)
+    else:
+        assert (shrunk.maps[:, 6:] - output.maps[:, 6:]).abs().max() > 0.05
+
+
 def test_a_specular_of_single_channel_bases_stays_grey_when_refined_towards_a_dimmer_one():
     """Real photos whose highlight is dimmer than predicted used to end with a green specular: the
     refinement lowered the channels it could move and left the one whose global basis sat at the
@@ -257,9 +286,9 @@ def test_a_prediction_kept_at_the_network_resolution_gives_the_upsampled_maps_an
     torch.manual_seed(0)
     path = save_checkpoint(tmp_path / "m.safetensors", DeepBasisNet(preset("tiny")).eval(),
                            metadata={"training": {"config": {"size": 32}}})
-    # The network's own maps: the capture's finishing (normal strength, specular floor) left out.
+    # The network's own maps: the capture's finishing (lobe variation, normal strength, specular floor) left out.
     capturer = Capturer(load_model(path), CaptureConfig(refine=RefineConfig(steps=5, resolution=16), detail=False,
-                                                        normal_strength=1.0, specular_floor=0.0))
+                                                        normal_strength=1.0, specular_floor=0.0, lobe_variation=1.0))
     photos, lights = flash_photos(material(7, size=64), torch.tensor([[0.1, -0.2]]))
     upsampled = predict(capturer.model, photos[0][None], lights,  # the photo as the capturer passes it
                         symmetries=capturer.config.symmetries)
