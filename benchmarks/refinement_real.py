@@ -3,8 +3,9 @@
     .venv/bin/mideepbasis data scenes --n 24 -o runs/phone_scenes     # the validation set, once
     .venv/bin/python benchmarks/refinement_real.py [--model CKPT] [--variants default,prior0.1,...]
 
-For each variant of ``RefineConfig`` it runs ``evaluate``'s real protocol (``evaluation.real``) on
-the calibrated real scenes (every photo in turn as the input, and photo 00 alone, the default
+For each variant of ``RefineConfig`` (``VARIANTS``) or of the capture around it
+(``CAPTURE_VARIANTS``) it runs ``evaluate``'s real protocol (``evaluation.real``) on the
+calibrated real scenes (every photo in turn as the input, and photo 00 alone, the default
 protocol) and on the validation scenes (photo 00 as the input), and reports the re-rendering
 RMSE of the refined capture beside the unrefined one. A lever is good only where both sets
 agree. Writes the entry ``real`` of results/refinement.json.
@@ -48,25 +49,40 @@ VARIANTS = {
     "steps250": {"steps": 250},
 }
 
+#: Variants of the capture around the refinement: ``EvaluationConfig`` fields shared with capture
+#: (``evaluation.run.SHARED_CAPTURE_FIELDS``) changed from capture's default, the refinement's own.
+CAPTURE_VARIANTS = {
+    "lobe1": {"lobe_variation": 1.0},
+    "lobe0.75": {"lobe_variation": 0.75},
+    "lobe0.25": {"lobe_variation": 0.25},
+    "lobe0": {"lobe_variation": 0.0},
+    "lobe1_encoded": {"lobe_variation": 1.0, "refine": {"encoded_loss": True}},
+}
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--real", type=Path, default=SHARED_TEST.parent / "real-calibrated")
     parser.add_argument("--validation", type=Path, default=Path("runs/phone_scenes"))
-    parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated names of VARIANTS")
+    parser.add_argument("--variants", default=",".join(VARIANTS),
+                        help="comma-separated names of VARIANTS and CAPTURE_VARIANTS")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "refinement.json")
     args = parser.parse_args()
     default = CaptureConfig().refine
     rows = {}
     for name in args.variants.split(","):
-        refine = replace(default, **VARIANTS[name])
-        rows[name] = {"refine": VARIANTS[name]}
+        if name not in VARIANTS and name not in CAPTURE_VARIANTS:
+            raise SystemExit(f"unknown variant {name!r}; known: {', '.join([*VARIANTS, *CAPTURE_VARIANTS])}")
+        capture_fields = dict(CAPTURE_VARIANTS.get(name, {}))
+        refine_fields = {**VARIANTS.get(name, {}), **capture_fields.pop("refine", {})}
+        refine = replace(default, **refine_fields)
+        rows[name] = {"refine": refine_fields, "capture": capture_fields}
         for label, data, inputs in (("real", args.real, "all"), ("real_photo00", args.real, 0),
                                     ("validation", args.validation, 0)):
             with tempfile.TemporaryDirectory() as folder:
                 config = EvaluationConfig(data=str(data), format="calibrated", input_photo=inputs, model=args.model,
-                                          refine=refine)
+                                          refine=refine, **capture_fields)
                 summary = run_real_evaluation(config, Path(folder), progress=False)
             figures = summary["rows"]
             rows[name][label] = {"refined": figures[CAPTURE_ROW]["rmse"], "unrefined": figures[UNREFINED_ROW]["rmse"],
