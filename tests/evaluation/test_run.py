@@ -199,3 +199,27 @@ def test_the_direct_baseline_row_runs_a_network_without_bases(evaluation_dataset
     with pytest.warns(UserWarning, match="skipping"):
         summary = run_evaluation(config, progress=False)
     assert "direct (no bases)" in summary["rows"] and summary["rows"]["direct (no bases)"]["render_rmse"] > 0
+
+
+def test_an_evaluation_passes_the_capture_options_it_sets_and_leaves_the_rest_to_capture():
+    from mideepbasis.capturing import CaptureConfig
+    from mideepbasis.evaluation.run import SHARED_CAPTURE_FIELDS, evaluation_capture_config
+
+    default = evaluation_capture_config(EvaluationConfig(data="d"), fov=30.0)
+    assert default == CaptureConfig(fov=30.0)
+    given = {"symmetries": 2, "grey_specular": True, "specular_floor": 0.0, "normal_strength": 0.5,
+             "lobe_variation": 0.25}
+    assert set(given) == set(SHARED_CAPTURE_FIELDS)
+    config = evaluation_capture_config(EvaluationConfig(data="d", **given), fov=30.0, detail=False)
+    assert {name: getattr(config, name) for name in given} == given
+    assert config.fov == 30.0 and config.detail is False
+    for name, value in given.items():  # each differs from capture's default, so each was passed on
+        assert getattr(CaptureConfig(), name) != value
+
+
+def test_evaluate_refuses_a_lobe_variation_outside_zero_to_one(capsys):
+    from mideepbasis.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--data", "nowhere", "--lobe-variation", "1.5"])
+    assert "--lobe-variation: must lie in [0, 1], got 1.5" in capsys.readouterr().err
