@@ -61,8 +61,8 @@ def positive_int(text: str) -> int:
     return value
 
 
-def unit_share(text: str) -> float:
-    """A number in [0, 1], for a field's ``metadata={"parse": unit_share}``."""
+def unit_share(text: str | float) -> float:
+    """A number in [0, 1], for a field's ``metadata={"parse": unit_share}`` (and its ``__post_init__``)."""
     value = float(text)
     if not 0.0 <= value <= 1.0:
         raise ValueError(f"must lie in [0, 1], got {value:g}")

@@ -99,8 +99,10 @@ class CaptureConfig:
 
     def __post_init__(self):
         check_symmetries(self.symmetries)  # now, not at the first prediction
-        if not 0.0 <= self.lobe_variation <= 1.0:
-            raise ValueError(f"lobe_variation must lie in [0, 1], got {self.lobe_variation:g}")
+        try:
+            unit_share(self.lobe_variation)  # the command line's check, for callers of the Python API
+        except ValueError as error:
+            raise ValueError(f"lobe_variation {error}") from None
 
 
 @dataclass(frozen=True)

@@ -251,3 +251,10 @@ def test_the_lobe_variation_pulls_the_captured_roughness_and_specular_toward_the
     torch.testing.assert_close(captured[6:], expected, rtol=0, atol=1e-5)
     torch.testing.assert_close(captured[:6], truth[0, :6], rtol=0, atol=1e-5)
     assert float(lobe.std(dim=(1, 2)).min()) > 0.01  # the truth's lobe varies
+
+
+def test_a_lobe_variation_outside_zero_to_one_is_refused_by_the_python_api_too():
+    from mideepbasis.capturing import CaptureConfig
+
+    with pytest.raises(ValueError, match=r"lobe_variation must lie in \[0, 1\], got 1.5"):
+        CaptureConfig(lobe_variation=1.5)
