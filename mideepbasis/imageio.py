@@ -122,7 +122,9 @@ def read_image(
         max_pixels: largest accepted width * height [pixels].
         reduce: return the image ``reduce`` times smaller on each side (box filter, sizes rounded
             down), decoded in 8 bits first (JPEGs at a reduced scale already), so that a 48 MP
-            photo never exists as a full-size float array. 8-bit PNG, JPEG and HEIC only.
+            photo never exists as a full-size float array. 8-bit PNG, JPEG and HEIC only. The
+            codes are averaged, not linear light: linear means gave the shipped model worse maps
+            (benchmarks/README.md, refinement_real).
 
     Returns:
         (H, W, C) float32 image, C = 1 or 3.
