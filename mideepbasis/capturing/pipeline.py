@@ -359,7 +359,13 @@ class Capturer:
         light = flash_position(offset, photo.fov)
         prediction = predict_small(self.model, photo.pixels[None], light[None], photo.fov,
                                    self.config.network_resolution, self.config.symmetries)
-        output = prediction.output.with_shrunk_deviations(constants.LOBE, self.config.lobe_variation)
+        output = prediction.output
+        if self.config.lobe_variation < 1.0 and self.config.refine.unclamped_moves:
+            # The shrink cuts the lobe's deviations to the signed space. The unclamped refinement
+            # cuts every reflectance channel's (the same maps): so do they all here. A clamped one
+            # keeps the pixels the local unit pushed past a bound of the diffuse.
+            output = output.unsaturated()
+        output = output.with_shrunk_deviations(constants.LOBE, self.config.lobe_variation)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if self.config.detail else None,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
                        normal_strength=self.config.normal_strength)

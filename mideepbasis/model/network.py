@@ -439,30 +439,31 @@ class DeepBasisOutput:
         return DeepBasisOutput.from_bases(self.weights, global_bases.to(self.weights), self.deviations,
                                           keep_bases=False, error=self.error, extras=self.extras)
 
-    def unsaturated(self) -> DeepBasisOutput:
-        """This output with each basis's reflectance deviations cut to what its global basis leaves
-        inside the signed space, deviation' = clamp(global + deviation, -1, 1) - global: the same
-        maps, but a change of a global basis now moves every pixel where that basis weighs. The
-        local unit often pushes a basis past a bound (its deviations saturate near +-1); there a
-        change of the global basis moves nothing, so a refinement that may move only some of a
-        basis's channels tints the specular (``RefineConfig.unclamped_moves``)."""
+    def unsaturated(self, channels: slice = constants.REFLECTANCE) -> DeepBasisOutput:
+        """This output with each basis's deviations of ``channels`` (default: the reflectance) cut
+        to what its global basis leaves inside the signed space, deviation' = clamp(global +
+        deviation, -1, 1) - global: the same maps, but a change of a global basis now moves every
+        pixel where that basis weighs. The local unit often pushes a basis past a bound (its
+        deviations saturate near +-1); there a change of the global basis moves nothing, so a
+        refinement that may move only some of a basis's channels tints the specular
+        (``RefineConfig.unclamped_moves``)."""
         if self.deviations is None or self.global_bases is None:
             return self
-        reflectance = constants.REFLECTANCE
-        start = self.global_bases[:, :, reflectance, None, None].to(self.deviations)
+        start = self.global_bases[:, :, channels, None, None].to(self.deviations)
         deviations = self.deviations.clone()
-        deviations[:, :, reflectance] = (start + self.deviations[:, :, reflectance]).clamp(-1.0, 1.0) - start
+        deviations[:, :, channels] = (start + self.deviations[:, :, channels]).clamp(-1.0, 1.0) - start
         return replace(self, deviations=deviations)
 
     def with_shrunk_deviations(self, channels: slice, share: float) -> DeepBasisOutput:
         """This output with each basis's local deviations of ``channels`` pulled toward their mean
         over the pixels where the basis weighs: ``mean + share (deviation - mean)``, the mean
         weighted by the basis's blending weights. 1 keeps them, 0 leaves each basis one value
-        there, its global basis plus that mean. The deviations are first cut to what their global
-        basis leaves inside the signed space (``unsaturated``), so the mean is of what the maps show."""
+        there, its global basis plus that mean. The deviations of ``channels`` are first cut to what
+        their global basis leaves inside the signed space (``unsaturated``), so the mean is of what
+        the maps show; the other channels' stay as they are (a clamped refinement keeps them)."""
         if share == 1.0 or self.deviations is None or self.weights is None:
             return self
-        output = self.unsaturated()
+        output = self.unsaturated(channels)
         deviations = output.deviations.clone()
         part = deviations[:, :, channels]  # (B, N, C, H, W)
         weights = self.weights.to(part)[:, :, None]

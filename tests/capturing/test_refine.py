@@ -165,6 +165,9 @@ def test_shrunk_deviations_pull_each_basis_lobe_toward_its_weighted_mean(share):
             torch.testing.assert_close(visible(global_bases[0, basis, channel] + shrunk.deviations[0, basis, channel]),
                                        shown, atol=1e-6, rtol=0)
     torch.testing.assert_close(shrunk.global_bases, global_bases)
+    # The other channels' deviations are the network's, past the bounds where they were (a clamped
+    # refinement keeps those pixels where the local unit put them).
+    assert torch.equal(shrunk.deviations[:, :, :6], output.deviations[:, :, :6])
     torch.testing.assert_close(shrunk.maps[:, :6], output.maps[:, :6], atol=1e-6, rtol=0)
     if share == 1.0:
         torch.testing.assert_close(shrunk.maps, output.maps, atol=1e-6, rtol=0)
