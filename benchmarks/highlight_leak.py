@@ -19,9 +19,11 @@ On real photos there is no truth: the imprint is measured where the flash's high
 brightest 5% of the lighting mark, a glossy reference rendered under the light the capture found):
 the diffuse luminance there minus elsewhere, over its mean. A blob makes it positive, a hole
 negative; real surfaces vary, so its magnitude over many photos is the figure (``mean_abs``). The
-same is measured on the held-out phone scenes (``data scenes``; photo 00, with the truth-based leak
+imprint is measured on the held-out phone scenes (``data scenes``; photo 00, with the truth-based leak
 beside) and on the 13 photos of ``real-flash-photos``, with the specular map's tint (its mean sRGB
-channels' spread: a dielectric's is grey).
+channels' spread: a dielectric's is grey). On the real photos it is measured again with each
+basis's local diffuse deviations at their mean over its pixels (``imprint_local_at_mean``): what is
+left is the weights' and the global bases' share.
 
 Writes the JSON report and ``highlight_leak.png`` beside it: the contact sheet of the real photos,
 a row each: photo, diffuse, normal, roughness, specular, the re-render under the found flash.
@@ -103,7 +105,12 @@ def real_photos(capturer, folder: Path) -> tuple[dict, list[np.ndarray]]:
         result = capturer.capture(path)
         maps = result.material.to_tensor()
         light = result.light_position
+        # Where the imprint lives: the same capture with each basis's local diffuse deviations at
+        # their mean over the basis's pixels (the weights and the refined global bases kept).
+        at_mean = result.output.with_shrunk_deviations(constants.DIFFUSE, 0.0).maps_at(*maps.shape[-2:])[0]
         figures[path.stem] = {"imprint": imprint(maps[constants.DIFFUSE], light, result.fov, capturer.convention),
+                              "imprint_local_at_mean": imprint(at_mean[constants.DIFFUSE], light, result.fov,
+                                                               capturer.convention),
                               "specular_tint": specular_tint(maps[constants.SPECULAR])}
         with torch.no_grad():
             rerender = render_flash(maps[None], light.view(1, 1, 3), fov=result.fov, convention=capturer.convention)[0, 0]
@@ -140,6 +147,8 @@ def summary(figures: dict) -> dict:
     result = {"photos": len(figures), "mean_abs_imprint": float(np.abs(values["imprint"]).mean()),
               "mean_imprint": float(values["imprint"].mean()), "mean_specular_tint": float(values["specular_tint"].mean()),
               "tinted_over_0.05": int((values["specular_tint"] > 0.05).sum())}
+    if "imprint_local_at_mean" in values:
+        result["mean_abs_imprint_local_at_mean"] = float(np.abs(values["imprint_local_at_mean"]).mean())
     if "leak" in values:
         result.update({"mean_leak": float(values["leak"].mean()),
                        "mean_abs_true_imprint": float(np.abs(values["true_imprint"]).mean())})
@@ -168,7 +177,8 @@ def main() -> None:
     report["real_photos"] = {**summary(real), "per_photo": real}
     print(f"real photos ({len(real)}): mean |imprint| {report['real_photos']['mean_abs_imprint']:.4f} (signed "
           f"{report['real_photos']['mean_imprint']:+.4f}), specular tint {report['real_photos']['mean_specular_tint']:.4f}, "
-          f"{report['real_photos']['tinted_over_0.05']} tinted over 0.05")
+          f"{report['real_photos']['tinted_over_0.05']} tinted over 0.05; with the local diffuse deviations at each "
+          f"basis's mean {report['real_photos']['mean_abs_imprint_local_at_mean']:.4f}")
     from mideepbasis.imageio import write_image
 
     write_image(args.output.with_suffix(".png"), np.concatenate(rows, axis=0).clip(0, 1))
