@@ -345,3 +345,34 @@ def test_small_adam_is_torch_adam_to_the_bit():
             ((parameter - target).abs().mean() + (parameter**3).mean()).backward()
             optimizer.step()
     assert torch.equal(a, b)
+
+
+class SaturatingOracle(OracleModel):
+    """The oracle with its diffuse deviations pushed past the signed space's bound on the top rows,
+    as the local unit often pushes them: the same maps (they are clipped there anyway)."""
+
+    def forward(self, inputs, lights=None, fov=constants.DEFAULT_FOV_DEG):
+        output = super().forward(inputs, lights, fov)
+        deviations = output.deviations.clone()
+        deviations[:, :, constants.DIFFUSE, :8] = 1.5 - output.global_bases[:, :, constants.DIFFUSE, None, None]
+        return DeepBasisOutput(maps=maps_by_hand(output.global_bases, deviations), weights=output.weights,
+                               global_bases=output.global_bases, deviations=deviations)
+
+
+@pytest.mark.parametrize("unclamped", [True, False])
+def test_a_capture_cuts_the_diffuse_deviations_only_for_an_unclamped_refinement(unclamped):
+    truth = material(7, size=32)
+    config = CaptureConfig(refine=RefineConfig(steps=0, unclamped_moves=unclamped), detail=False, lobe_variation=0.5,
+                           symmetries=1)
+    capturer = Capturer(SaturatingOracle(truth), config)
+    photos, _ = flash_photos(truth, torch.tensor([[0.1, -0.2]]))
+    raw = capturer.model(None)
+    kept = capturer.predict(Photo(photos[0], 45.0, "argument"), (0.1, -0.2)).output
+    diffuse = (slice(None), slice(None), constants.DIFFUSE)
+    # Unclamped, the refinement moves every pixel of a basis: the deviations are cut to what the maps
+    # show (1 in the signed space on the top rows). Clamped, they stay past the bound where the
+    # local unit put them. The maps are the same either way.
+    expected = raw.unsaturated() if unclamped else raw
+    assert (raw.unsaturated().deviations[diffuse] - raw.deviations[diffuse]).abs().max() > 0.4
+    torch.testing.assert_close(kept.deviations[diffuse], expected.deviations[diffuse], atol=1e-6, rtol=0)
+    torch.testing.assert_close(kept.maps[:, :6], raw.maps[:, :6], atol=1e-6, rtol=0)
