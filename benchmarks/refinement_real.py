@@ -47,6 +47,7 @@ VARIANTS = {
     "diffuse_specular": {"moving_maps": ("diffuse", "specular")},
     "resolution128": {"resolution": 128},
     "steps250": {"steps": 250},
+    "normals": {"normals": True},
 }
 
 #: Variants of the capture around the refinement: ``EvaluationConfig`` fields shared with capture
