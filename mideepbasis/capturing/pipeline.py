@@ -361,9 +361,9 @@ class Capturer:
                                    self.config.network_resolution, self.config.symmetries)
         output = prediction.output
         if self.config.lobe_variation < 1.0 and self.config.refine.unclamped_moves:
-            # The shrink cuts the lobe's deviations to the signed space. The unclamped refinement
-            # cuts every reflectance channel's (the same maps): so do they all here. A clamped one
-            # keeps the pixels the local unit pushed past a bound of the diffuse.
+            # The shrink cuts the lobe's deviations to the signed space. An unclamped refinement (the
+            # default) cuts every reflectance channel's, the maps the same: so are they all cut here.
+            # A clamped one keeps the diffuse's pixels the local unit pushed past a bound.
             output = output.unsaturated()
         output = output.with_shrunk_deviations(constants.LOBE, self.config.lobe_variation)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if self.config.detail else None,
