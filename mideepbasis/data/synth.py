@@ -87,6 +87,17 @@ class SynthesisConfig:
     """Range (uniform, per photo) of the exponent k of the flash's angular falloff, cos^k of the
     angle from its axis (a phone's LED is no perfect point light). 0: an isotropic point light."""
 
+    specular_haze: tuple[float, float] = (0.0, 0.0)
+    """Range (uniform, per material) of the share of the specular rendered in a second, broader lobe
+    (roughness raised by ``haze_spread``) while the target keeps one lobe of the whole specular. A
+    real highlight has heavier tails than one GGX lobe (a clear coat over a rougher base, dust,
+    scratches): a network trained on one lobe alone puts what the lobe leaves unexplained into the
+    diffuse map. 0: one lobe, as the maps say."""
+
+    haze_spread: tuple[float, float] = (0.1, 0.4)
+    """Range (uniform, per material) of how much rougher the haze's lobe is than the material's
+    (``specular_haze``) [roughness, clipped at 1]."""
+
     jpeg_quality: tuple[int, int] | None = None
     """Range (uniform, per photo) of the JPEG quality the 8-bit photo is compressed at; None: none."""
 
@@ -114,12 +125,12 @@ class SynthesisConfig:
             low, high = self.fov_range
             if not 0.0 < low <= high < 180.0:
                 raise ValueError(f"fov_range must be two angles with 0 < low <= high < 180 deg, got {self.fov_range}")
-        for name in ("tone_contrast", "vignetting", "flash_cone"):
+        for name in ("tone_contrast", "vignetting", "flash_cone", "specular_haze", "haze_spread"):
             low, high = getattr(self, name)
             if not 0.0 <= low <= high:
                 raise ValueError(f"{name} must be a range 0 <= low <= high, got {getattr(self, name)}")
-        if self.tone_contrast[1] > 1.0 or self.vignetting[1] >= 1.0:
-            raise ValueError("tone_contrast must lie in [0, 1] and vignetting in [0, 1)")
+        if self.tone_contrast[1] > 1.0 or self.vignetting[1] >= 1.0 or self.specular_haze[1] > 1.0:
+            raise ValueError("tone_contrast and specular_haze must lie in [0, 1] and vignetting in [0, 1)")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality[0] <= self.jpeg_quality[1] <= 100:
             raise ValueError(f"jpeg_quality must be a range within [1, 100], got {self.jpeg_quality}")
         if not 0.0 <= self.tilt_deg < 90.0:
@@ -357,6 +368,21 @@ def tilt_normals(maps: torch.Tensor, angles: torch.Tensor, azimuths: torch.Tenso
     return tilted
 
 
+def with_haze(maps: torch.Tensor, shares: torch.Tensor, spreads: torch.Tensor) -> torch.Tensor:
+    """(2B, 10, H, W): ``maps`` (B, 10, H, W) with their specular times 1 - share, then the haze
+    alone (no diffuse): the specular times share at the roughness plus spread (clipped at 1). The
+    two rendered under one flash and added are the material with a two-lobe specular
+    (``SynthesisConfig.specular_haze``): under a flash beside the camera the Fresnel term is the
+    specular itself, so the two lobes' F0 add up to the material's."""
+    shares, spreads = shares.view(-1, 1, 1, 1), spreads.view(-1, 1, 1, 1)
+    sharp, haze = maps.clone(), maps.clone()
+    sharp[:, constants.SPECULAR] = maps[:, constants.SPECULAR] * (1.0 - shares)
+    haze[:, constants.DIFFUSE] = 0.0
+    haze[:, constants.SPECULAR] = maps[:, constants.SPECULAR] * shares
+    haze[:, constants.ROUGHNESS] = (maps[:, constants.ROUGHNESS] + spreads).clamp(max=1.0)
+    return torch.cat([sharp, haze])
+
+
 def flash_cone_falloff(lights: torch.Tensor, exponents: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """(B, 1, H, W) the flash's angular falloff cos^k of the angle between its axis (straight down)
     and each pixel's point, for flashes at ``lights`` (B, 3) and exponents k (B,)."""
@@ -446,8 +472,16 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
         angles = torch.deg2rad(_uniform(batch, (0.0, config.tilt_deg), generator))
         azimuths = _uniform(batch, (0.0, 2.0 * math.pi), generator)
         seen = tilt_normals(seen, torch.cat([angles, angles]), torch.cat([azimuths, azimuths]))
+    if config.specular_haze[1] > 0:
+        shares, spreads = _uniform(batch, config.specular_haze, generator), _uniform(batch, config.haze_spread, generator)
+        seen = with_haze(seen, torch.cat([shares, shares]).to(maps), torch.cat([spreads, spreads]).to(maps))
+        lights_seen = torch.cat([both_lights, both_lights])
+    else:
+        lights_seen = both_lights
     with torch.no_grad():
-        radiance = render_flash(seen, both_lights.view(2 * batch, 1, 3), fov=fov, convention=config.convention)[:, 0]
+        radiance = render_flash(seen, lights_seen.view(-1, 1, 3), fov=fov, convention=config.convention)[:, 0]
+    if seen.shape[0] > 2 * batch:  # the haze's lobes, rendered after the materials
+        radiance = radiance[:2 * batch] + radiance[2 * batch:]
     if config.flash_cone[1] > 0:
         exponents = _uniform(batch, config.flash_cone, generator)
         radiance = radiance * flash_cone_falloff(both_lights, torch.cat([exponents, exponents]).to(maps),

@@ -297,3 +297,37 @@ def test_a_share_of_batches_is_photographed_by_the_plain_camera():
     fovs = [synth.synthesize(random_maps(1, 8), generator, config).fov for _ in range(200)]
     plain = sum(fov == constants.DEFAULT_FOV_DEG for fov in fovs) / len(fovs)
     assert 0.3 < plain < 0.5
+
+
+def test_a_hazy_photo_is_the_sum_of_two_lobes_whose_specular_adds_up():
+    maps = random_maps(2, 32, seed=4)
+    maps[:, constants.ROUGHNESS] = 0.3
+    config = _noiseless(specular_haze=(0.4, 0.4), haze_spread=(0.25, 0.25))
+    batch = synth.synthesize(maps, torch.Generator().manual_seed(6), config)
+    # The independent reference: the material with 60 % of its specular, plus a diffuse-free
+    # material with the other 40 % at roughness 0.55, each rendered by the torch renderer.
+    sharp, haze = maps.clone(), maps.clone()
+    sharp[:, constants.SPECULAR] *= 0.6
+    haze[:, constants.DIFFUSE] = 0.0
+    haze[:, constants.SPECULAR] *= 0.4
+    haze[:, constants.ROUGHNESS] = 0.55
+    lights = batch.lights.view(2, 1, 3)
+    expected = (render_flash(sharp, lights, backend="torch") + render_flash(haze, lights, backend="torch"))[:, 0]
+    torch.testing.assert_close(batch.photos, expected.clamp(0, 1), atol=1e-4, rtol=0)
+    assert torch.equal(batch.maps, maps)  # the target keeps one lobe of the whole specular
+    one_lobe = render_flash(maps, lights, backend="torch")[:, 0]
+    assert (batch.photos < one_lobe.clamp(0, 1) - 1e-3).any() and (batch.photos > one_lobe + 1e-3).any()
+
+
+def test_without_haze_the_synthesis_draws_the_same_numbers():
+    maps = random_maps(2, 16, seed=2)
+    plain = synth.synthesize(maps, torch.Generator().manual_seed(8), _noiseless())
+    spread_only = synth.synthesize(maps, torch.Generator().manual_seed(8), _noiseless(haze_spread=(0.3, 0.5)))
+    assert torch.equal(plain.photos, spread_only.photos) and torch.equal(plain.lights, spread_only.lights)
+
+
+@pytest.mark.parametrize("field, value", [("specular_haze", (0.5, 1.5)), ("specular_haze", (0.6, 0.2)),
+                                          ("haze_spread", (-0.1, 0.2))])
+def test_haze_ranges_are_checked(field, value):
+    with pytest.raises(ValueError, match=field):
+        synth.SynthesisConfig(**{field: value})
