@@ -149,6 +149,26 @@ def finite(value: float) -> float | None:
     return None if math.isnan(value) else value
 
 
+def network_band_moments(result, truth: torch.Tensor) -> dict:
+    """How the network's diffuse at its own resolution follows the truth's just below it: the
+    sums of products of the two bands ``m - blur(m)`` (``detail.LOW_SIGMA``, the band the detail
+    step's gains are fitted in), the truth area-averaged to the network's size. Pooled over a
+    group, ``predicted_truth / truth_truth`` is the slope of the network's band on the truth's (1:
+    as strong as the truth's; the detail step's gains inherit it: ``detail.DIFFUSE_GAIN``)."""
+    from mideepbasis.capturing.detail import LOW_SIGMA
+    from mideepbasis.resampling import gaussian_blur
+
+    predicted = result.output.maps[:, constants.DIFFUSE].float().cpu()
+    true = downsample(truth[:, constants.DIFFUSE], tuple(predicted.shape[-2:]))
+
+    def band(image):
+        return image - gaussian_blur(image, LOW_SIGMA, padding="replicate")
+
+    predicted, true = band(predicted), band(true)
+    return {"predicted_truth": float((predicted * true).sum()), "truth_truth": float((true * true).sum()),
+            "predicted_predicted": float((predicted * predicted).sum())}
+
+
 def fine_tilt_deg(normal_energy: float) -> float:
     """The normals' RMS tilt above the band [deg] from their energy there (unit normals: for small
     tilts the x and y residuals are the tilt in radians, z's is of second order)."""
@@ -172,8 +192,11 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
                        for name in MAPS},
             "fine_tilt_deg": fine_tilt_deg(energy["normal"] / len(records)),
             "seconds_median": float(np.median([row["seconds"] for row in rows]))}
+    moments = {key: sum(r["network_band"][key] for r in records) for key in records[0]["network_band"]}
     return {"materials": len(records), "truth_fine_tilt_deg": fine_tilt_deg(truth_energy["normal"] / len(records)),
-            "rows": summary}
+            "rows": summary, "network_diffuse_band": {
+                "slope": moments["predicted_truth"] / moments["truth_truth"],
+                "correlation": moments["predicted_truth"] / math.sqrt(moments["predicted_predicted"] * moments["truth_truth"])}}
 
 
 def shading_visibility(truth: torch.Tensor, photo: torch.Tensor, light: torch.Tensor, band: int) -> dict:
@@ -242,6 +265,9 @@ def print_table(group: str, summary: dict) -> None:
               f"{rmse['specular']:7.4f} {row['render_rmse']:7.4f}   "
               + " ".join(number(row["detail"][name]) for name in MAPS)
               + f"   {row['fine_tilt_deg']:6.2f}    {row['seconds_median']:9.2f}")
+    band = summary["network_diffuse_band"]
+    print(f"the network's diffuse band at its resolution against the truth's: slope {band['slope']:.3f}, "
+          f"correlation {band['correlation']:.3f}")
 
 
 def main() -> None:
@@ -303,6 +329,8 @@ def main() -> None:
             start = time.perf_counter()
             result = capturer.with_config(light=offset).capture(pixels)
             seconds = time.perf_counter() - start
+            if label == labels[1]:
+                record["network_band"] = network_band_moments(result, truth)
             maps = upsample_maps(result.material.to_tensor()[None], args.size)
             del result
             with torch.no_grad():

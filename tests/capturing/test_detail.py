@@ -28,12 +28,16 @@ def textured_scene(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     return albedo, albedo * falloff
 
 
-def upsampled_answer(albedo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def upsampled_answer(albedo: torch.Tensor, band_slope: float = 1.0 / detail.DIFFUSE_GAIN
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """The network's answer as capture has it: the truth at LOW px (flat normals, roughness 0.4,
-    specular 0.04), and that upsampled to SIZE."""
+    specular 0.04), its diffuse's band above ``detail.LOW_SIGMA`` times ``band_slope`` (a network's
+    answer is smoother than the truth: ``detail.DIFFUSE_GAIN``), and that upsampled to SIZE."""
     low = torch.zeros(1, 10, LOW, LOW)
     low[:, 2] = 1.0
-    low[:, constants.DIFFUSE] = downsample(albedo, LOW)
+    diffuse = downsample(albedo, LOW)
+    smooth = gaussian_blur(diffuse, detail.LOW_SIGMA, padding="replicate")
+    low[:, constants.DIFFUSE] = smooth + band_slope * (diffuse - smooth)
     low[:, constants.ROUGHNESS] = 0.4
     low[:, constants.SPECULAR] = 0.04
     return low, upsample_bilinear(low, SIZE, SIZE)
@@ -58,6 +62,21 @@ def test_a_map_that_follows_the_photo_gets_its_detail_and_a_flat_one_none():
     # relief is invented from the albedo's texture.
     assert float((detailed[:, 0:2]).abs().max()) < TOLERANCES["flat_normal"]
     assert torch.allclose(detailed[:, constants.ROUGHNESS], before[:, constants.ROUGHNESS], atol=1e-4)
+
+
+def test_the_diffuse_gains_are_scaled_by_the_diffuse_gain(monkeypatch):
+    albedo, photo = textured_scene(4)
+    low, maps = upsampled_answer(albedo)
+
+    def fine_energy():
+        diffuse = detail.add_detail(maps.clone(), photo, low)[:, constants.DIFFUSE]
+        return float(high_band(diffuse).square().sum())
+
+    scaled = fine_energy()
+    unscaled = tuple(1.0 if 3 <= channel < 6 else gain for channel, gain in enumerate(detail.GAIN_OF_CHANNEL))
+    monkeypatch.setattr(detail, "GAIN_OF_CHANNEL", unscaled)
+    # Energy goes with the square of the gain; the clip to [0, 1] takes a little off.
+    assert scaled / fine_energy() == pytest.approx(detail.DIFFUSE_GAIN**2, rel=0.1)
 
 
 def test_the_network_answer_below_its_resolution_is_kept():
