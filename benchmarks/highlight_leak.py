@@ -122,14 +122,16 @@ def real_photos(capturer, folder: Path) -> tuple[dict, list[np.ndarray]]:
     return figures, rows
 
 
-def phone_scenes(capturer, folder: Path, convention: str) -> dict:
-    """Photo 00 of each calibrated scene captured: its imprint and the truth-based leak."""
+def phone_scenes(capturer, folder: Path, convention: str, light_known: bool = False) -> dict:
+    """Photo 00 of each calibrated scene captured: its imprint and the truth-based leak;
+    ``light_known``: the capture is told the flash's true offset instead of searching for it."""
     from mideepbasis.evaluation.real import load_scene, scene_folders, true_maps
 
     figures = {}
     for scene_folder in scene_folders(folder):
         scene = load_scene(scene_folder)
-        result = capturer.with_config(fov=scene.fov(0)).capture(scene.photos[0])
+        light = (float(scene.lights[0, 0]), float(scene.lights[0, 1])) if light_known else None
+        result = capturer.with_config(fov=scene.fov(0), light=light).capture(scene.photos[0])
         maps = result.material.to_tensor()
         truth = true_maps(scene, maps.shape[-1])
         leak, _, _ = highlight_leak(maps[None], truth[None], scene.lights[:1], scene.fov(0), convention)
@@ -163,6 +165,8 @@ def main() -> None:
                         help="a folder of real flash photos (no truth)")
     parser.add_argument("--scenes", type=Path, default=Path("runs/phone_scenes"),
                         help="calibrated phone scenes with their truth (mideepbasis data scenes)")
+    parser.add_argument("--scenes-light-known", action="store_true",
+                        help="tell the phone scenes' captures the true flash offset (no search)")
     parser.add_argument("--skip-shared", action="store_true", help="leave out the shared set and the demo")
     # The captures' options, as `mideepbasis capture` takes them (--refine-steps 0: the network's maps alone).
     add_config_arguments(parser, CaptureConfig, describe=False)
@@ -172,6 +176,7 @@ def main() -> None:
     fov, convention = constants.DEFAULT_FOV_DEG, model.config.convention
     capturer = Capturer(model, config_from_arguments(CaptureConfig, args))
     report = {"model": args.model or "shipped", "highlight_share": HIGHLIGHT_SHARE,
+              "scenes_light_known": args.scenes_light_known,
               "capture_changes": given_fields(args, CaptureConfig)}
     real, rows = real_photos(capturer, args.real)
     report["real_photos"] = {**summary(real), "per_photo": real}
@@ -183,7 +188,7 @@ def main() -> None:
 
     write_image(args.output.with_suffix(".png"), np.concatenate(rows, axis=0).clip(0, 1))
     if args.scenes.is_dir():
-        scenes = phone_scenes(capturer, args.scenes, convention)
+        scenes = phone_scenes(capturer, args.scenes, convention, args.scenes_light_known)
         report["phone_scenes"] = {**summary(scenes), "per_scene": scenes}
         print(f"phone scenes ({len(scenes)}): mean |imprint| {report['phone_scenes']['mean_abs_imprint']:.4f} (truth's "
               f"{report['phone_scenes']['mean_abs_true_imprint']:.4f}), leak {report['phone_scenes']['mean_leak']:+.4f}, "
