@@ -472,15 +472,14 @@ def synthesize(maps: torch.Tensor, generator: torch.Generator,
         angles = torch.deg2rad(_uniform(batch, (0.0, config.tilt_deg), generator))
         azimuths = _uniform(batch, (0.0, 2.0 * math.pi), generator)
         seen = tilt_normals(seen, torch.cat([angles, angles]), torch.cat([azimuths, azimuths]))
-    if config.specular_haze[1] > 0:
+    hazy = config.specular_haze[1] > 0
+    if hazy:
         shares, spreads = _uniform(batch, config.specular_haze, generator), _uniform(batch, config.haze_spread, generator)
         seen = with_haze(seen, torch.cat([shares, shares]).to(maps), torch.cat([spreads, spreads]).to(maps))
-        lights_seen = torch.cat([both_lights, both_lights])
-    else:
-        lights_seen = both_lights
+    lights_seen = torch.cat([both_lights, both_lights]) if hazy else both_lights
     with torch.no_grad():
         radiance = render_flash(seen, lights_seen.view(-1, 1, 3), fov=fov, convention=config.convention)[:, 0]
-    if seen.shape[0] > 2 * batch:  # the haze's lobes, rendered after the materials
+    if hazy:  # the haze's lobes, rendered after the materials
         radiance = radiance[:2 * batch] + radiance[2 * batch:]
     if config.flash_cone[1] > 0:
         exponents = _uniform(batch, config.flash_cone, generator)
