@@ -23,7 +23,9 @@ imprint is measured on the held-out phone scenes (``data scenes``; photo 00, wit
 beside) and on the 13 photos of ``real-flash-photos``, with the specular map's tint (its mean sRGB
 channels' spread: a dielectric's is grey). On the real photos it is measured again with each
 basis's local diffuse deviations at their mean over its pixels (``imprint_local_at_mean``): what is
-left is the weights' and the global bases' share.
+left is the weights' and the global bases' share. The phone scenes' leak is also given by the
+brightness of their true diffuse (thirds, darkest first) and apart for photos with clipped pixels
+(``leak_by``).
 
 Writes the JSON report and ``highlight_leak.png`` beside it: the contact sheet of the real photos,
 a row each: photo, diffuse, normal, roughness, specular, the re-render under the found flash.
@@ -42,6 +44,7 @@ from common import RESULTS, SHARED_TEST, shared_predictions, write_report
 
 from mideepbasis import constants, geometry
 from mideepbasis.capturing import CaptureConfig, Capturer
+from mideepbasis.capturing.refine import CLIPPED
 from mideepbasis.configs import add_config_arguments, config_from_arguments, given_fields
 from mideepbasis.material import Material
 from mideepbasis.model.checkpoint import load_model
@@ -134,13 +137,36 @@ def phone_scenes(capturer, folder: Path, convention: str, light_known: bool = Fa
         result = capturer.with_config(fov=scene.fov(0), light=light).capture(scene.photos[0])
         maps = result.material.to_tensor()
         truth = true_maps(scene, maps.shape[-1])
-        leak, _, _ = highlight_leak(maps[None], truth[None], scene.lights[:1], scene.fov(0), convention)
+        leak, albedo_leak, _ = highlight_leak(maps[None], truth[None], scene.lights[:1], scene.fov(0), convention)
         figures[scene.name] = {"imprint": imprint(maps[constants.DIFFUSE], result.light_position, result.fov,
                                                   convention),
                                "true_imprint": imprint(truth[constants.DIFFUSE], result.light_position, result.fov,
                                                        convention),
-                               "leak": float(leak[0]), "specular_tint": specular_tint(maps[constants.SPECULAR])}
+                               "leak": float(leak[0]), "leak_in_albedo": float(albedo_leak[0]),
+                               "specular_tint": specular_tint(maps[constants.SPECULAR]),
+                               "true_diffuse_mean": float(luminance(truth[None, constants.DIFFUSE]).mean()),
+                               "clipped_share": float((result.photo.amax(dim=0) >= CLIPPED).float().mean())}
     return figures
+
+
+def signed(value: float | None) -> str:
+    """A leak for the printed summary ("-": no scene)."""
+    return "-" if value is None else f"{value:+.3f}"
+
+
+def leak_by_darkness(figures: dict) -> dict:
+    """The scenes' mean leak (relative and in albedo units) in thirds by their true diffuse's mean
+    luminance (darkest first), and apart for the scenes whose photo has clipped pixels and those without."""
+    scenes = sorted(figures.values(), key=lambda figure: figure["true_diffuse_mean"])
+
+    def thirds(key: str) -> list[float]:
+        return [float(third.mean()) for third in np.array_split(np.array([figure[key] for figure in scenes]), 3)]
+
+    clipped = [figure["leak"] for figure in scenes if figure["clipped_share"] > 0]
+    unclipped = [figure["leak"] for figure in scenes if figure["clipped_share"] == 0]
+    return {"by_diffuse_third": thirds("leak"), "in_albedo_by_diffuse_third": thirds("leak_in_albedo"),
+            "clipped": float(np.mean(clipped)) if clipped else None, "clipped_scenes": len(clipped),
+            "unclipped": float(np.mean(unclipped)) if unclipped else None}
 
 
 def summary(figures: dict) -> dict:
@@ -189,10 +215,16 @@ def main() -> None:
     write_image(args.output.with_suffix(".png"), np.concatenate(rows, axis=0).clip(0, 1))
     if args.scenes.is_dir():
         scenes = phone_scenes(capturer, args.scenes, convention, args.scenes_light_known)
-        report["phone_scenes"] = {**summary(scenes), "per_scene": scenes}
+        report["phone_scenes"] = {**summary(scenes), "leak_by": leak_by_darkness(scenes), "per_scene": scenes}
         print(f"phone scenes ({len(scenes)}): mean |imprint| {report['phone_scenes']['mean_abs_imprint']:.4f} (truth's "
               f"{report['phone_scenes']['mean_abs_true_imprint']:.4f}), leak {report['phone_scenes']['mean_leak']:+.4f}, "
               f"specular tint {report['phone_scenes']['mean_specular_tint']:.4f}")
+        by = report["phone_scenes"]["leak_by"]
+        print("  leak by the true diffuse's brightness, darkest third first: "
+              + " / ".join(f"{leak:+.3f}" for leak in by["by_diffuse_third"]) + " (in albedo "
+              + " / ".join(f"{leak:+.4f}" for leak in by["in_albedo_by_diffuse_third"]) + ")"
+              + f"; {by['clipped_scenes']} scenes with clipped pixels {signed(by['clipped'])}, the others "
+              f"{signed(by['unclipped'])}")
     if args.skip_shared:
         write_report(args.output, "highlight_leak", report)
         return
