@@ -182,6 +182,13 @@ class TrainConfig:
     highlight covers a few percent of a photo, so the plain loss hardly minds a highlight baked
     into the diffuse map (issue 11's demo smudge); 0: off."""
 
+    diffuse_loss_encoded: bool = False
+    """Compare the diffuse map in the supervised loss as sRGB-encoded albedo rather than linear
+    (its pixels still weighed by ``highlight_weight``): a blob in the diffuse is seen against the
+    albedo beside it, and in linear values a dark material's blob costs little. On the held-out
+    phone scenes the leak relative to the albedo is largest on the darkest third of materials,
+    though smallest in albedo units (``benchmarks/highlight_leak.py``, ``leak_by``)."""
+
     anchor: str | None = None
     """A checkpoint whose answers the run keeps on the plain camera's batches (those that
     ``synthesis.plain_probability`` draws): there the loss adds ``anchor_weight`` times the

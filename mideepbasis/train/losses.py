@@ -10,6 +10,7 @@ import torch
 
 from .. import constants, geometry
 from ..data.synth import Variation
+from ..imageio import linear_to_srgb
 from ..model.network import DeepBasisOutput, to_signed
 
 
@@ -73,12 +74,20 @@ def channel_weights(normal_weight: float, device=None) -> torch.Tensor:
 
 def supervised_loss(output: DeepBasisOutput, maps: torch.Tensor, normal_weight: float = 1.0,
                     signed_target: torch.Tensor | None = None,
-                    diffuse_weights: torch.Tensor | None = None) -> torch.Tensor:
+                    diffuse_weights: torch.Tensor | None = None, diffuse_encoded: bool = False) -> torch.Tensor:
     """(Weighted) L1 between the predicted blend and the ground truth ``maps`` (or, given, the
     target already in signed space), in signed space; ``diffuse_weights`` (B, 1, H, W) weigh the
-    diffuse channels' pixels (``highlight_weights``)."""
+    diffuse channels' pixels (``highlight_weights``); ``diffuse_encoded``: the diffuse channels
+    compared as sRGB-encoded albedos instead (``TrainConfig.diffuse_loss_encoded``)."""
     target = to_signed(maps) if signed_target is None else signed_target
     difference = (output.signed_maps - target).abs()
+    if diffuse_encoded:
+        def encoded(signed: torch.Tensor) -> torch.Tensor:  # signed space to sRGB-encoded albedo
+            return linear_to_srgb((signed[:, constants.DIFFUSE] * 0.5 + 0.5).clamp(0.0, 1.0))
+
+        difference = torch.cat([difference[:, :constants.DIFFUSE.start],
+                                (encoded(output.signed_maps) - encoded(target)).abs(),
+                                difference[:, constants.DIFFUSE.stop:]], dim=1)
     if diffuse_weights is not None:
         difference = torch.cat([difference[:, :constants.DIFFUSE.start],
                                 difference[:, constants.DIFFUSE] * diffuse_weights,

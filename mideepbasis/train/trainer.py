@@ -270,11 +270,13 @@ class Trainer:
         if use_vc:
             original, varied = output.split(maps.shape[0])
             variation = Variation(batch.variation.rotation.to(self.device), batch.variation.shift.to(self.device))
-            sup = supervised_loss(original, target, config.normal_weight, diffuse_weights=diffuse_weights)
+            sup = supervised_loss(original, target, config.normal_weight, diffuse_weights=diffuse_weights,
+                                  diffuse_encoded=config.diffuse_loss_encoded)
             vc = variation_consistency_loss(original, varied, variation, batch.varied_maps.to(self.device),
                                             config.normal_weight)
         else:
-            sup = supervised_loss(output, target, config.normal_weight, diffuse_weights=diffuse_weights)
+            sup = supervised_loss(output, target, config.normal_weight, diffuse_weights=diffuse_weights,
+                                  diffuse_encoded=config.diffuse_loss_encoded)
             vc = torch.zeros((), device=self.device)
         saturation = saturation_penalty(output.extras["decoder_raw"].float())
         anchored = self._anchor_loss(original if use_vc else output, batch)
@@ -357,7 +359,8 @@ class Trainer:
                 channels = constants.MAP_SLICES[name]
                 maps[:, channels], signed_target[:, channels] = kept.maps[:, channels], kept.signed_maps[:, channels]
         diffuse_weights = None if batch.diffuse_weights is None else batch.diffuse_weights.to(self.device)
-        sup = supervised_loss(output, maps, config.normal_weight, signed_target, diffuse_weights)
+        sup = supervised_loss(output, maps, config.normal_weight, signed_target, diffuse_weights,
+                              config.diffuse_loss_encoded)
         loss, losses = self._with_rendering_loss(sup, output.maps, maps)
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": 0.0, "l_saturation": 0.0, **losses,

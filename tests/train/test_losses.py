@@ -143,3 +143,23 @@ def test_the_diffuse_weights_weigh_the_diffuse_error_of_each_pixel():
     torch.testing.assert_close(supervised_loss(output, truth, diffuse_weights=weights), 2.0 * plain)
     weights[0, 0, 0, 0], weights[0, 0, 1, 1] = 1.0, 5.0  # the roughness pixel: its diffuse is right
     torch.testing.assert_close(supervised_loss(output, truth, diffuse_weights=weights), plain)
+
+
+def test_the_encoded_diffuse_loss_compares_srgb_albedos():
+    import colour
+
+    from mideepbasis.train import supervised_loss
+
+    truth = torch.full((1, 10, 2, 2), 0.5)
+    truth[0, 3:6] = torch.tensor([0.02, 0.2, 0.6]).view(3, 1, 1)  # a dark, a middle and a bright channel
+    predicted = truth.clone()
+    predicted[0, 3:6] *= 1.3  # the same relative error in each
+    predicted[0, 6, 1, 1] += 0.1  # one roughness error, compared as before
+    output = DeepBasisOutput(maps=predicted)
+    # The independent reference: colour-science's sRGB encoding of both albedos, the other
+    # channels' L1 in signed space (twice the maps' difference), over the 10 x 4 values.
+    encode = lambda x: torch.from_numpy(colour.cctf_encoding(x.double().numpy(), "sRGB"))  # noqa: E731
+    diffuse = (encode(predicted[0, 3:6]) - encode(truth[0, 3:6])).abs().sum()
+    expected = (diffuse + 2 * 0.1) / 40
+    encoded = supervised_loss(output, truth, diffuse_encoded=True)
+    assert float(encoded) == pytest.approx(float(expected), rel=1e-5)
