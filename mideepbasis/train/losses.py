@@ -81,16 +81,16 @@ def supervised_loss(output: DeepBasisOutput, maps: torch.Tensor, normal_weight: 
     compared as sRGB-encoded albedos instead (``TrainConfig.diffuse_loss_encoded``)."""
     target = to_signed(maps) if signed_target is None else signed_target
     difference = (output.signed_maps - target).abs()
-    if diffuse_encoded:
-        def encoded(signed: torch.Tensor) -> torch.Tensor:  # signed space to sRGB-encoded albedo
-            return linear_to_srgb((signed[:, constants.DIFFUSE] * 0.5 + 0.5).clamp(0.0, 1.0))
+    if diffuse_encoded or diffuse_weights is not None:  # the diffuse channels' term, rebuilt once
+        diffuse = difference[:, constants.DIFFUSE]
+        if diffuse_encoded:
+            def encoded(signed: torch.Tensor) -> torch.Tensor:  # signed space to sRGB-encoded albedo
+                return linear_to_srgb((signed[:, constants.DIFFUSE] * 0.5 + 0.5).clamp(0.0, 1.0))
 
-        difference = torch.cat([difference[:, :constants.DIFFUSE.start],
-                                (encoded(output.signed_maps) - encoded(target)).abs(),
-                                difference[:, constants.DIFFUSE.stop:]], dim=1)
-    if diffuse_weights is not None:
-        difference = torch.cat([difference[:, :constants.DIFFUSE.start],
-                                difference[:, constants.DIFFUSE] * diffuse_weights,
+            diffuse = (encoded(output.signed_maps) - encoded(target)).abs()
+        if diffuse_weights is not None:
+            diffuse = diffuse * diffuse_weights
+        difference = torch.cat([difference[:, :constants.DIFFUSE.start], diffuse,
                                 difference[:, constants.DIFFUSE.stop:]], dim=1)
     return (difference * channel_weights(normal_weight, maps.device)).mean()
 
