@@ -627,19 +627,26 @@ class DeepBasisNet(nn.Module):
 
         if lights is None:
             raise ValueError("the local unit needs the flash positions (lights) for its error map")
+        photo = decode_photo(inputs)
+        error = self.error_map(weights, global_bases, photo, lights, fov)
+        return BasisStage(weights=weights, global_bases=global_bases, local_inputs=torch.cat([inputs, error, weights], dim=1),
+                          photo=photo, error=error, extras=extras)
+
+    def error_map(self, weights: torch.Tensor, global_bases: torch.Tensor, photo: torch.Tensor, lights: torch.Tensor,
+                  fov: float = constants.DEFAULT_FOV_DEG) -> torch.Tensor:
+        """(B, 3, H, W) the local unit's error map: the globally-blended material (weights (B, N, H, W),
+        global bases (B, N, 10) signed space) rendered under the flashes at ``lights`` (B, 3), clipped
+        to [0, 1], minus the linear photo (B, 3, H, W)."""
         from ..render import render_flash
 
         # The renderer takes the blended normal as it is (a normal below the surface renders black).
         global_maps = to_maps(compose_bases(weights, global_bases)[1], upper_hemisphere=False)
-        photo = decode_photo(inputs)
         # The render runs in float32 even under mixed-precision autocast: the GGX peak of smooth
         # bases does not survive bfloat16.
-        with torch.autocast(inputs.device.type, enabled=False):
-            rendered = render_flash(global_maps.float(), lights.view(batch, 1, 3).float(), fov=fov,
-                                    convention=config.convention, extent=config.plane_extent)[:, 0]
-        error = rendered.clamp(0.0, 1.0) - photo.float()
-        return BasisStage(weights=weights, global_bases=global_bases, local_inputs=torch.cat([inputs, error, weights], dim=1),
-                          photo=photo, error=error, extras=extras)
+        with torch.autocast(photo.device.type, enabled=False):
+            rendered = render_flash(global_maps.float(), lights.view(photo.shape[0], 1, 3).float(), fov=fov,
+                                    convention=self.config.convention, extent=self.config.plane_extent)[:, 0]
+        return rendered.clamp(0.0, 1.0) - photo.float()
 
     def local_deviations(self, local_inputs: torch.Tensor, weights: torch.Tensor,
                          global_bases: torch.Tensor) -> torch.Tensor:

@@ -171,7 +171,23 @@ class TrainConfig:
     on their channels the target is not the true map but the map of the network with the init's
     local unit, so the unit learns the other maps without moving these. Trained alone on
     procedural materials the unit trades the roughness for the diffuse on the shared test set
-    (MODEL.md); kept, the roughness cannot drift. Costs one more local-unit pass a step."""
+    (MODEL.md); kept, the roughness cannot drift. Costs one more local-unit pass for each material
+    the pool photographs."""
+
+    global_roughness_jitter: float = 0.0
+    """With ``local_pool``: the largest shift of the global bases' roughness [roughness, the map's
+    units] before they reach the local unit. Each material of the pool draws one shift, uniform in
+    +- this, for all its bases (clipped to [0, 1]), and the local unit's error map is rendered from
+    the shifted bases; the targets stay those of the bases as predicted (the true maps, and
+    ``local_pool_keep``'s maps as the init answers the unshifted inputs). On real photos the global
+    unit's lobe misses the highlight and the local unit turns the difference into the diffuse map
+    (dark holes under the highlight, benchmarks/README.md); so it learns to answer such a miss with
+    the lobe's maps. 0: off."""
+
+    global_specular_jitter: float = 0.0
+    """With ``local_pool``: the largest change of the global bases' specular [octaves]: each material
+    draws one factor 2^u, u uniform in +- this, for all its bases' specular (clipped to [0, 1]),
+    as ``global_roughness_jitter`` shifts their roughness. 0: off."""
 
     highlight_weight: float = 0.0
     """Extra weight of the diffuse map's loss under the flash's highlight (the whole network's
@@ -249,6 +265,12 @@ class TrainConfig:
                                  "and a network with a local unit")
             if self.local_pool_refresh > self.local_pool:
                 raise ValueError("local_pool_refresh cannot exceed local_pool")
+        if self.global_roughness_jitter < 0 or self.global_specular_jitter < 0:
+            raise ValueError(f"global_roughness_jitter {self.global_roughness_jitter} and global_specular_jitter "
+                             f"{self.global_specular_jitter} must be 0 (off) or positive")
+        if (self.global_roughness_jitter or self.global_specular_jitter) and not self.local_pool:
+            raise ValueError("global_roughness_jitter and global_specular_jitter change what the local pool gives "
+                             "the local unit: they need local_pool")
         unknown = [name for name in self.local_pool_keep if name not in constants.MAP_SLICES]
         if unknown:
             raise ValueError(f"local_pool_keep: unknown maps {unknown}; known: {list(constants.MAP_SLICES)}")

@@ -107,9 +107,9 @@ class PhotographedPool:
             maps = self.materials[number][None]
             batch = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + number), config.synthesis,
                                config.network.extra_inputs)
-            self._store(number % self.size, maps, batch)
+            self._store(number % self.size, maps, batch, number)
 
-    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
+    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch, number: int) -> None:
         raise NotImplementedError
 
     def batch(self, generator: torch.Generator):
@@ -139,7 +139,7 @@ class NormalUnitPool(PhotographedPool):
         self.normals = torch.empty(config.normal_pool, 3, size, size)
         super().__init__(materials, config, step, config.normal_pool, config.normal_pool_refresh)
 
-    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
+    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch, number: int) -> None:
         config = self.config
         reliefs = octave_relief_inputs(decode_photo(batch.inputs), batch.lights, 1 + len(self.coarse_relief),
                                        config.synthesis.fov, config.network.convention, config.network.plane_extent)
@@ -190,12 +190,32 @@ class LocalUnitBatch:
     diffuse_weights: torch.Tensor | None = None
     """(B, 1, H, W) weights of the diffuse loss (``TrainConfig.highlight_weight``), or None: 1."""
 
+    kept_maps: torch.Tensor | None = None
+    """(B, 10, H, W) the maps of the init's network (``TrainConfig.local_pool_keep``), or None."""
+
+    kept_signed: torch.Tensor | None = None
+    """(B, 10, H, W) the same blend in the signed space, or None."""
+
+
+def shifted_lobes(global_bases: torch.Tensor, roughness_shift: torch.Tensor, specular_octaves: torch.Tensor
+                  ) -> torch.Tensor:
+    """Global bases (B, N, 10) signed space with every basis's roughness shifted by ``roughness_shift``
+    (B,) [roughness] and its specular times 2^``specular_octaves`` (B,), both clipped to [0, 1]
+    (``TrainConfig.global_roughness_jitter``)."""
+    bases = global_bases.clone()
+    roughness = bases[:, :, constants.ROUGHNESS] * 0.5 + 0.5 + roughness_shift.view(-1, 1, 1)
+    specular = (bases[:, :, constants.SPECULAR] * 0.5 + 0.5) * torch.exp2(specular_octaves).view(-1, 1, 1)
+    bases[:, :, constants.ROUGHNESS] = roughness.clamp(0.0, 1.0) * 2.0 - 1.0
+    bases[:, :, constants.SPECULAR] = specular.clamp(0.0, 1.0) * 2.0 - 1.0
+    return bases
+
 
 class LocalUnitPool(PhotographedPool):
     """The training data of the local unit alone (``TrainConfig.local_pool``): for each material of
-    the pool (``PhotographedPool``), what ``stage_of`` (network inputs, lights, field of view) gives: the local
-    unit's inputs, the weights, the global bases and the normal unit's slope, from the frozen rest
-    of the network; beside the true maps."""
+    the pool (``PhotographedPool``), what ``stage_of`` (network inputs, lights, field of view, the
+    global lobe's shift: roughness (1,) and specular octaves (1,)) gives: the local unit's inputs, the
+    weights, the global bases, the normal unit's slope, from the frozen rest of the network, and the
+    kept maps (``TrainConfig.local_pool_keep``: maps and signed, or None); beside the true maps."""
 
     def __init__(self, materials: Dataset, config: TrainConfig, step: int, stage_of):
         self.stage_of = stage_of
@@ -207,13 +227,30 @@ class LocalUnitPool(PhotographedPool):
         self.slope = torch.empty(count, 2, size, size)
         self.maps = torch.empty(count, 10, size, size)
         self.diffuse_weights = torch.empty(count, 1, size, size) if config.highlight_weight else None
+        kept = (count, 10, size, size)
+        self.kept_maps = torch.empty(kept) if config.local_pool_keep else None
+        self.kept_signed = torch.empty(kept) if config.local_pool_keep else None
         super().__init__(materials, config, step, count, config.local_pool_refresh)
 
-    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch) -> None:
+    def lobe_shift(self, number: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Material ``number``'s shift of the global lobe: (roughness (1,), specular octaves (1,)),
+        drawn uniformly within ``global_roughness_jitter`` and ``global_specular_jitter`` by a
+        generator of the material's own (zeros when both are off)."""
+        config = self.config
+        if not (config.global_roughness_jitter or config.global_specular_jitter):
+            return torch.zeros(1), torch.zeros(1)
+        draws = np.random.default_rng([config.seed, number, 13]).uniform(-1.0, 1.0, size=2)
+        return (torch.tensor([draws[0] * config.global_roughness_jitter], dtype=torch.float32),
+                torch.tensor([draws[1] * config.global_specular_jitter], dtype=torch.float32))
+
+    def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch, number: int) -> None:
         # Each material at the field of view it was photographed at (``SynthesisConfig.fov_range``).
-        local_inputs, weights, global_bases, slope = self.stage_of(batch.inputs, batch.lights, batch.fov)
+        local_inputs, weights, global_bases, slope, kept = self.stage_of(batch.inputs, batch.lights, batch.fov,
+                                                                         *self.lobe_shift(number))
         self.local_inputs[slot], self.weights[slot], self.global_bases[slot] = local_inputs[0], weights[0], global_bases[0]
         self.slope[slot], self.maps[slot] = slope[0], batch.maps[0]
+        if kept is not None:
+            self.kept_maps[slot], self.kept_signed[slot] = kept[0][0], kept[1][0]
         if self.diffuse_weights is not None:
             config = self.config
             self.diffuse_weights[slot] = highlight_weights(batch.maps, batch.lights, config.highlight_weight,
@@ -223,9 +260,12 @@ class LocalUnitPool(PhotographedPool):
     def batch(self, generator: torch.Generator) -> LocalUnitBatch:
         """``config.batch`` materials of the pool, drawn at random."""
         slots = torch.randint(0, self.size, (self.config.batch,), generator=generator)
+        def drawn(stored: torch.Tensor | None) -> torch.Tensor | None:
+            return None if stored is None else stored[slots]
+
         return LocalUnitBatch(self.local_inputs[slots], self.weights[slots], self.global_bases[slots],
-                              self.slope[slots], self.maps[slots],
-                              None if self.diffuse_weights is None else self.diffuse_weights[slots])
+                              self.slope[slots], self.maps[slots], drawn(self.diffuse_weights),
+                              drawn(self.kept_maps), drawn(self.kept_signed))
 
 
 

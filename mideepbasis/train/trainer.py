@@ -22,7 +22,8 @@ from ..errors import InputError, MideepbasisError
 from ..model.checkpoint import CheckpointError, non_finite_tensors, previous_path, read_checkpoint, save_checkpoint
 from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, to_signed
 from .config import LOCAL_UNIT_FIELDS, RESUMABLE_CHANGES, TrainConfig
-from .data import LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials
+from .data import (LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials,
+                   shifted_lobes)
 from .losses import (highlight_weights, learning_rate_factor, normal_unit_loss, normals_over_flat, rendering_loss,
                      sample_render_geometry, saturation_penalty, supervised_loss, variation_consistency_loss)
 
@@ -341,23 +342,15 @@ class Trainer:
         weights, global_bases, maps = (t.to(self.device) for t in (batch.weights, batch.global_bases, batch.maps))
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=config.bf16):
             deviations = model.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
-        slope = batch.slope.to(self.device)
-
-        def blended(local_deviations: torch.Tensor) -> DeepBasisOutput:  # the normal unit's slope added
-            return DeepBasisOutput.from_bases(weights, global_bases,
-                                              add_slope(global_bases, local_deviations, slope,
-                                                        model.config.normal_slope_scaled), keep_bases=False)
-
-        output = blended(deviations.float())
+        output = self._local_blend(weights, global_bases, deviations.float(), batch.slope.to(self.device))
         signed_target = None
-        if self.kept_from is not None:
-            with torch.no_grad():
-                kept = blended(self.kept_from.local_deviations(batch.local_inputs.to(self.device), weights, global_bases))
+        if batch.kept_maps is not None:
             # The blend itself (signed space) for the map loss, its maps for the rendering loss.
+            kept_maps, kept_signed = batch.kept_maps.to(self.device), batch.kept_signed.to(self.device)
             maps, signed_target = maps.clone(), to_signed(maps)
             for name in config.local_pool_keep:
                 channels = constants.MAP_SLICES[name]
-                maps[:, channels], signed_target[:, channels] = kept.maps[:, channels], kept.signed_maps[:, channels]
+                maps[:, channels], signed_target[:, channels] = kept_maps[:, channels], kept_signed[:, channels]
         diffuse_weights = None if batch.diffuse_weights is None else batch.diffuse_weights.to(self.device)
         sup = supervised_loss(output, maps, config.normal_weight, signed_target, diffuse_weights,
                               config.diffuse_loss_encoded)
@@ -365,6 +358,14 @@ class Trainer:
         norm = self._optimise(loss)  # the frozen rest has no gradient
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": 0.0, "l_saturation": 0.0, **losses,
                 "grad_norm": norm.item()}
+
+    def _local_blend(self, weights: torch.Tensor, global_bases: torch.Tensor, deviations: torch.Tensor,
+                     slope: torch.Tensor) -> DeepBasisOutput:
+        """The local unit's deviations blended with the frozen weights and global bases, the normal
+        unit's slope added."""
+        scaled = getattr(self.model, "module", self.model).config.normal_slope_scaled
+        return DeepBasisOutput.from_bases(weights, global_bases, add_slope(global_bases, deviations, slope, scaled),
+                                          keep_bases=False)
 
     # --- the loop ----------------------------------------------------------------------------------
 
@@ -381,14 +382,26 @@ class Trainer:
         model = getattr(self.model, "module", self.model)
         if self.config.local_pool:
             @torch.no_grad()
-            def stage_of(inputs: torch.Tensor, lights: torch.Tensor, fov: float):
+            def stage_of(inputs: torch.Tensor, lights: torch.Tensor, fov: float, roughness_shift: torch.Tensor,
+                         specular_octaves: torch.Tensor):
                 inputs, lights = inputs.to(self.device), lights.to(self.device)
                 stage = model.basis_stage(inputs, lights, fov)
                 slope = torch.zeros_like(stage.error[:, :2])
                 if hasattr(model, "normal_unit"):
                     slope = model.normal_slope(stage, lights, fov)
-                return (stage.local_inputs.float().cpu(), stage.weights.float().cpu(),
-                        stage.global_bases.float().cpu(), slope.float().cpu())
+                kept = None
+                if self.kept_from is not None:  # the init's answer to the bases as predicted
+                    blend = self._local_blend(stage.weights, stage.global_bases, self.kept_from.local_deviations(
+                        stage.local_inputs, stage.weights, stage.global_bases), slope)
+                    kept = (blend.maps.float().cpu(), blend.signed_maps.float().cpu())
+                local_inputs, global_bases = stage.local_inputs, stage.global_bases
+                if bool(roughness_shift.any() or specular_octaves.any()):
+                    global_bases = shifted_lobes(global_bases, roughness_shift.to(self.device),
+                                                 specular_octaves.to(self.device))
+                    error = model.error_map(stage.weights, global_bases, stage.photo, lights, fov)
+                    local_inputs = torch.cat([inputs, error.to(inputs), stage.weights.to(inputs)], dim=1)
+                return (local_inputs.float().cpu(), stage.weights.float().cpu(), global_bases.float().cpu(),
+                        slope.float().cpu(), kept)
 
             return LocalUnitPool(self.materials(), self.config, self.step, stage_of)
         return NormalUnitPool(self.materials(), self.config, self.step)

@@ -264,6 +264,61 @@ def test_the_local_unit_keeps_the_maps_it_is_told_to_as_its_init_gives_them(tmp_
         local_pool_config(tmp_path, local_pool_keep=("roughness",))
 
 
+def test_the_local_pool_shows_the_local_unit_a_shifted_global_lobe_and_keeps_the_unshifted_targets(tmp_path):
+    """With ``global_roughness_jitter`` and ``global_specular_jitter`` a pool material's global bases
+    have their roughness shifted and their specular scaled by its own draw, within the bounds; its
+    error map is the render of the shifted global blend minus the photo (the torch reference
+    renderer, rebuilt here); the kept maps are still the init's answer to the unshifted photo."""
+    from mideepbasis import geometry
+    from mideepbasis.data.synth import synthesize
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.inputs import decode_photo
+    from mideepbasis.model.network import DeepBasisNet, compose_bases, preset, to_maps
+    from mideepbasis.render.reference import render_flash as render_flash_reference
+
+    torch.manual_seed(0)
+    source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny", normal_unit_width=4)))
+    jitter = dict(global_roughness_jitter=0.3, global_specular_jitter=1.0)
+    config = local_pool_config(tmp_path, init=str(source), local_pool_keep=("roughness", "specular"), **jitter)
+    trainer = Trainer(config, progress=False)
+    pool, model, config = trainer.unit_pool(), trainer.model, trainer.config
+    channels = config.network.input_channels
+    shifts = []
+    for slot in range(3):
+        maps = trainer.materials()[slot][None]
+        photographed = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + slot), config.synthesis)
+        with torch.no_grad():
+            stage = model.basis_stage(photographed.inputs, photographed.lights, config.synthesis.fov)
+            unshifted = model(photographed.inputs, photographed.lights, fov=config.synthesis.fov).maps
+        predicted, stored = to_maps(stage.global_bases, dim=2), to_maps(pool.global_bases[slot:slot + 1], dim=2)
+        roughness_shift = stored[0, :, 6] - predicted[0, :, 6]
+        inside = (predicted[0, :, 6] > 0.35) & (predicted[0, :, 6] < 0.65)  # bases the shift cannot clip
+        assert inside.any()
+        assert roughness_shift[inside].std() < 1e-5 and roughness_shift[inside].abs().max() <= 0.3 + 1e-5
+        shifts.append(float(roughness_shift[inside].mean()))
+        ratio = stored[0, :, 7:] / predicted[0, :, 7:]
+        unclipped = (predicted[0, :, 7:] > 0.05) & (stored[0, :, 7:] < 0.95)
+        assert ratio[unclipped].std() < 1e-4 and 0.5 - 1e-5 <= float(ratio[unclipped].mean()) <= 2.0 + 1e-5
+        # The error map of the shifted bases, rendered by the reference renderer.
+        blended = to_maps(compose_bases(stage.weights, pool.global_bases[slot:slot + 1])[1], upper_hemisphere=False)
+        fov, convention = config.synthesis.fov, config.network.convention
+        rendered = render_flash_reference(blended, photographed.lights.view(1, 1, 3),
+                                          geometry.flash_intensity(fov, convention), convention)[:, 0]
+        expected_error = rendered.clamp(0, 1) - decode_photo(photographed.inputs)
+        torch.testing.assert_close(pool.local_inputs[slot:slot + 1, channels:channels + 3], expected_error,
+                                   atol=2e-4, rtol=0)
+        assert (pool.local_inputs[slot, channels:channels + 3] - stage.error[0]).abs().max() > 1e-3
+        torch.testing.assert_close(pool.kept_maps[slot:slot + 1, 6:], unshifted[:, 6:], atol=1e-5, rtol=0)
+    assert len(set(round(shift, 4) for shift in shifts)) == 3  # a draw of each material's own
+    # Off, the pool holds the bases as predicted; without the pool the jitter is refused.
+    plain = Trainer(local_pool_config(tmp_path / "plain", init=str(source)), progress=False).unit_pool()
+    assert plain.kept_maps is None
+    with pytest.raises(ValueError, match="they need local_pool"):
+        tiny_config(tmp_path, global_roughness_jitter=0.1)
+    with pytest.raises(ValueError, match="must be 0"):
+        local_pool_config(tmp_path, global_specular_jitter=-1.0)
+
+
 def test_the_local_pool_stores_the_highlight_weights_of_its_materials(tmp_path):
     trainer = Trainer(local_pool_config(tmp_path, highlight_weight=4.0), progress=False)
     pool = trainer.unit_pool()
