@@ -142,12 +142,12 @@ def shared_predictions(model):
     from mideepbasis import constants
     from mideepbasis.capturing import RefineConfig
     from mideepbasis.evaluation.protocol import evaluation_offsets, load_evaluation_materials
-    from mideepbasis.evaluation.run import _predict_all
+    from mideepbasis.evaluation.run import predict_all
 
     if not SHARED_TEST.is_dir():
         raise SystemExit(f"{SHARED_TEST} is absent")
     fov = constants.DEFAULT_FOV_DEG
     truth = load_evaluation_materials(SHARED_TEST, "deschaintre5").maps
     offsets = evaluation_offsets(len(truth), 0, fov)
-    predicted, _, _ = _predict_all(model, truth, offsets, fov, "known", RefineConfig(steps=0), True, "model")
+    predicted, _, _ = predict_all(model, truth, offsets, fov, "known", RefineConfig(steps=0), True, "model")
     return truth, offsets, predicted

@@ -182,13 +182,13 @@ def evaluation_capture_config(config: EvaluationConfig | None = None, **fields):
     return CaptureConfig(**{**fields, **capture_options(config)})
 
 
-def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine: RefineConfig,
-                 progress: bool, label: str, network_resolution: int | None = None, detail: bool = True,
-                 config: EvaluationConfig | None = None) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
+def predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, light: str, refine: RefineConfig,
+                progress: bool, label: str, config: EvaluationConfig | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor | None, list[dict]]:
     """Predictions (N, 10, H, W) without and (when ``refine.steps``) with refinement, from one search
     and one prediction per material, and per-material details (light error [deg], passes, seconds);
-    ``config``: the evaluation whose capture options (``capture_options``) apply (None: capture's
-    defaults)."""
+    ``config``: the evaluation whose network resolution, detail and capture options
+    (``capture_options``) apply (None: capture's defaults)."""
     import time
 
     from tqdm import tqdm
@@ -196,8 +196,8 @@ def _predict_all(model, truth: torch.Tensor, offsets: torch.Tensor, fov: float, 
     from ..capturing import Capturer, Photo
 
     convention = model.config.convention
-    capturer = Capturer(model, evaluation_capture_config(config, fov=fov, network_resolution=network_resolution,
-                                                         refine=refine, detail=detail))
+    evaluated = {} if config is None else {"network_resolution": config.network_resolution, "detail": config.detail}
+    capturer = Capturer(model, evaluation_capture_config(config, fov=fov, refine=refine, **evaluated))
     plain, refined_maps, details = [], [], []
     for index in tqdm(range(len(truth)), desc=label, unit="material", disable=not progress):
         started = time.perf_counter()
@@ -272,8 +272,8 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     predictions = {}
     refine = shown_refinement(config) if config.baselines else config.refine
     steps = refine.steps
-    plain, refined, details = _predict_all(model, truth, offsets, config.fov, config.light, refine, progress, "model",
-                                           config.network_resolution, config.detail, config)
+    plain, refined, details = predict_all(model, truth, offsets, config.fov, config.light, refine, progress, "model",
+                                          config)
     light_error = float(np.mean([d["light_error_deg"] for d in details]))
     seconds = float(sum(d["seconds"] for d in details))
     kept = "" if refine.normals else ", normals kept"
@@ -295,9 +295,8 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
         rows["trivial"] = {"seconds": 0.0}
         if direct is not None:
             start = time.perf_counter()
-            predictions["direct (no bases)"], _, _ = _predict_all(
-                direct, truth, offsets, config.fov, "known", RefineConfig(steps=0), progress, "direct",
-                network_resolution=config.network_resolution, detail=config.detail, config=config)
+            predictions["direct (no bases)"], _, _ = predict_all(
+                direct, truth, offsets, config.fov, "known", RefineConfig(steps=0), progress, "direct", config)
             rows["direct (no bases)"] = {"seconds": time.perf_counter() - start}
             per_material["direct (no bases)"] = score(predictions["direct (no bases)"], truth, lights, views, convention,
                                                       lpips, stored=stored)
