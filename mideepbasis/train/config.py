@@ -120,6 +120,10 @@ class TrainConfig:
     validation_count: int = field(default=32, metadata={"parse": positive_int})
     """Held-out procedural materials (fixed seeds, never drawn in training) of each validation set."""
 
+    keep_validated: bool = False
+    """Keep the weights of every validated step too (``step_NNNNNNN.safetensors`` in ``out``), to
+    judge a run's steps by what its validation does not measure (``evaluate`` on real photos)."""
+
     select_by: str = field(default="held_out", metadata={"choices": ("held_out", "run_generator")})
     """Which validation set keeps ``best.safetensors``. Each validation predicts two: ``held_out``,
     materials of the generator as it was when the learning curve began (its figures compare across
@@ -327,4 +331,4 @@ TRAINABLE_PARTS = ("encoder", "weight_decoder", "global_unit", "local_unit", "no
 
 #: Settings a resumed run may change: where and how it runs, not what it learns.
 RESUMABLE_CHANGES = frozenset({"out", "workers", "checkpoint_minutes", "log_every", "validate_every", "device",
-                               "max_minutes", "render_backend"})
+                               "max_minutes", "render_backend", "keep_validated"})

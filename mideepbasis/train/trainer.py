@@ -572,6 +572,9 @@ class Trainer:
             self.best_score = score
             save_checkpoint(self.out / "best.safetensors", model, metadata={"training": {
                 **self.training_record(), "validation": record}})
+        if self.config.keep_validated:
+            save_checkpoint(self.out / f"step_{self.step:07d}.safetensors", model, metadata={"training": {
+                **self.training_record(), "validation": record}})
         validation_sheet(batches[0].photos[:4], predicted[:4], maps[:4],
                          self.out / "validation" / f"step_{self.step:07d}.png")
         self.plot_losses()

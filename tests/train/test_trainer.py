@@ -175,3 +175,23 @@ def test_validation_of_the_runs_own_generator_can_select_the_best_weights(tmp_pa
     document, _ = read_checkpoint(tmp_path / "run" / "best.safetensors")
     assert document["training"]["validation"]["step"] == best["step"]
     assert trainer.best_score == best["run_generator_validation"]["score"]
+
+
+def test_keep_validated_keeps_the_weights_of_every_validated_step(tmp_path):
+    from mideepbasis.model.checkpoint import load_model
+
+    config = tiny_config(tmp_path, steps=4, validate_every=2, validation_count=2, keep_validated=True)
+    trainer = Trainer(config, progress=False)
+    trainer.run()
+    out = tmp_path / "run"
+    assert sorted(path.name for path in out.glob("step_*.safetensors")) == [
+        "step_0000000.safetensors", "step_0000002.safetensors", "step_0000004.safetensors"]
+    for step in (0, 2, 4):
+        document, _ = read_checkpoint(out / f"step_{step:07d}.safetensors")
+        assert document["training"]["validation"]["step"] == step
+    final, first = load_model(out / "model.safetensors").state_dict(), load_model(out / "step_0000000.safetensors")
+    last = load_model(out / "step_0000004.safetensors").state_dict()
+    assert all(torch.equal(last[name], value) for name, value in final.items())
+    assert any(not torch.equal(first.state_dict()[name], value) for name, value in final.items())
+    Trainer(tiny_config(tmp_path / "plain", steps=2, validate_every=2, validation_count=2), progress=False).run()
+    assert not list((tmp_path / "plain").glob("**/step_*.safetensors"))
