@@ -25,7 +25,8 @@ channels' spread: a dielectric's is grey). On the real photos it is measured aga
 basis's local diffuse deviations at their mean over its pixels (``imprint_local_at_mean``): what is
 left is the weights' and the global bases' share. The phone scenes' leak is also given by the
 brightness of their true diffuse (thirds, darkest first) and apart for photos with clipped pixels
-(``leak_by``).
+(``leak_by``). For both, what the local unit starts from (``error_map_figures``, one network pass):
+its error map away from and under the highlight, and its mean diffuse deviation.
 
 Writes the JSON report and ``highlight_leak.png`` beside it: the contact sheet of the real photos,
 a row each: photo, diffuse, normal, roughness, specular, the re-render under the found flash.
@@ -90,6 +91,26 @@ def imprint(diffuse: torch.Tensor, light: torch.Tensor, fov: float, convention: 
     return float((value[region].mean() - value[~region].mean()) / value.mean().clamp_min(1e-3))
 
 
+def error_map_figures(capturer, photo: torch.Tensor, light: torch.Tensor, fov: float) -> dict:
+    """What the local unit starts from, in one network pass (no symmetries) on the photo (3, H, W)
+    under the found flash ``light`` (3,): the mean luminance of its error map (the global blend's
+    render, clipped at 1, minus the photo) away from the highlight and under it (the lighting mark's
+    brightest ``HIGHLIGHT_SHARE``), and the mean of the diffuse deviations, weighted as blended
+    (signed space: -1 is the bound of the local unit's tanh)."""
+    from mideepbasis.capturing.pipeline import predict_small
+    from mideepbasis.model.inputs import lighting_mark
+
+    output = predict_small(capturer.model, photo[None], light.view(1, 3), fov, capturer.config.network_resolution).output
+    height, width = output.error.shape[-2:]
+    mark = luminance(lighting_mark(light.view(1, 3), height, width, fov, capturer.convention,
+                                   capturer.model.config.plane_extent))[0]
+    region = mark >= torch.quantile(mark.flatten(), 1.0 - HIGHLIGHT_SHARE)
+    error = luminance(output.error)[0]
+    deviation = (output.weights[0, :, None] * output.deviations[0, :, constants.DIFFUSE]).sum(dim=0)
+    return {"error_map_outside": float(error[~region].mean()), "error_map_highlight": float(error[region].mean()),
+            "diffuse_deviation": float(deviation.mean())}
+
+
 def specular_tint(specular: torch.Tensor) -> float:
     """Spread (largest minus smallest) of a specular map's (3, H, W) mean sRGB channels."""
     from mideepbasis.imageio import linear_to_srgb
@@ -114,7 +135,8 @@ def real_photos(capturer, folder: Path) -> tuple[dict, list[np.ndarray]]:
         figures[path.stem] = {"imprint": imprint(maps[constants.DIFFUSE], light, result.fov, capturer.convention),
                               "imprint_local_at_mean": imprint(at_mean[constants.DIFFUSE], light, result.fov,
                                                                capturer.convention),
-                              "specular_tint": specular_tint(maps[constants.SPECULAR])}
+                              "specular_tint": specular_tint(maps[constants.SPECULAR]),
+                              **error_map_figures(capturer, result.photo, light, result.fov)}
         with torch.no_grad():
             rerender = render_flash(maps[None], light.view(1, 1, 3), fov=result.fov, convention=capturer.convention)[0, 0]
         tiles = [linear_to_srgb(result.photo.clamp(0, 1)), linear_to_srgb(maps[constants.DIFFUSE]),
@@ -145,7 +167,8 @@ def phone_scenes(capturer, folder: Path, convention: str, light_known: bool = Fa
                                "leak": float(leak[0]), "leak_in_albedo": float(albedo_leak[0]),
                                "specular_tint": specular_tint(maps[constants.SPECULAR]),
                                "true_diffuse_mean": float(luminance(truth[None, constants.DIFFUSE]).mean()),
-                               "clipped_share": float((result.photo.amax(dim=0) >= CLIPPED).float().mean())}
+                               "clipped_share": float((result.photo.amax(dim=0) >= CLIPPED).float().mean()),
+                               **error_map_figures(capturer, result.photo, result.light_position, result.fov)}
     return figures
 
 
@@ -177,10 +200,19 @@ def summary(figures: dict) -> dict:
               "tinted_over_0.05": int((values["specular_tint"] > 0.05).sum())}
     if "imprint_local_at_mean" in values:
         result["mean_abs_imprint_local_at_mean"] = float(np.abs(values["imprint_local_at_mean"]).mean())
+    if "error_map_outside" in values:
+        result.update({f"mean_{key}": float(values[key].mean())
+                       for key in ("error_map_outside", "error_map_highlight", "diffuse_deviation")})
     if "leak" in values:
         result.update({"mean_leak": float(values["leak"].mean()),
                        "mean_abs_true_imprint": float(np.abs(values["true_imprint"]).mean())})
     return result
+
+
+def error_map_line(part: dict) -> str:
+    """The printed line of ``error_map_figures``' means."""
+    return (f"  the local unit's error map {part['mean_error_map_outside']:+.3f} away from the highlight, "
+            f"{part['mean_error_map_highlight']:+.3f} under it; its diffuse deviations {part['mean_diffuse_deviation']:+.3f}")
 
 
 def main() -> None:
@@ -210,6 +242,7 @@ def main() -> None:
           f"{report['real_photos']['mean_imprint']:+.4f}), specular tint {report['real_photos']['mean_specular_tint']:.4f}, "
           f"{report['real_photos']['tinted_over_0.05']} tinted over 0.05; with the local diffuse deviations at each "
           f"basis's mean {report['real_photos']['mean_abs_imprint_local_at_mean']:.4f}")
+    print(error_map_line(report["real_photos"]))
     from mideepbasis.imageio import write_image
 
     write_image(args.output.with_suffix(".png"), np.concatenate(rows, axis=0).clip(0, 1))
@@ -219,6 +252,7 @@ def main() -> None:
         print(f"phone scenes ({len(scenes)}): mean |imprint| {report['phone_scenes']['mean_abs_imprint']:.4f} (truth's "
               f"{report['phone_scenes']['mean_abs_true_imprint']:.4f}), leak {report['phone_scenes']['mean_leak']:+.4f}, "
               f"specular tint {report['phone_scenes']['mean_specular_tint']:.4f}")
+        print(error_map_line(report["phone_scenes"]))
         by = report["phone_scenes"]["leak_by"]
         print("  leak by the true diffuse's brightness, darkest third first: "
               + " / ".join(f"{leak:+.3f}" for leak in by["by_diffuse_third"]) + " (in albedo "
