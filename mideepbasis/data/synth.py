@@ -79,6 +79,15 @@ class SynthesisConfig:
     encoding: y' = (1 - s) y + s (3 y^2 - 2 y^3). The capture decodes with plain sRGB, as it must
     for a photo of unknown processing. 0: plain sRGB."""
 
+    highlight_compression: tuple[float, float] = (1.0, 1.0)
+    """Range (log-uniform, per photo) of the white point W of a phone's highlight compression
+    [multiples of the sensor's clipping level]. Phones keep a flash highlight from clipping (the
+    real flash photos have 0 - 1.4 % of clipped pixels) by compressing it: here the extended
+    Reinhard curve y = x (1 + x / W^2) / (1 + x) on the linear signal, which maps W to 1, after a
+    gain that keeps a mid grey (0.18) where it was, before the clipping and the sRGB encoding. A
+    highlight then has a flatter top than the GGX lobe that made it, which a network trained on
+    linear highlights reads as a peak over a darker diffuse. 1: none."""
+
     vignetting: tuple[float, float] = (0.0, 0.0)
     """Range (uniform, per photo) of the lens's darkening v at the image corners: the photo times
     1 - v (r / r_corner)^2 [fraction]."""
@@ -129,6 +138,8 @@ class SynthesisConfig:
             low, high = getattr(self, name)
             if not 0.0 <= low <= high:
                 raise ValueError(f"{name} must be a range 0 <= low <= high, got {getattr(self, name)}")
+        if not 1.0 <= self.highlight_compression[0] <= self.highlight_compression[1]:
+            raise ValueError(f"highlight_compression must be a range 1 <= low <= high, got {self.highlight_compression}")
         if self.tone_contrast[1] > 1.0 or self.vignetting[1] >= 1.0 or self.specular_haze[1] > 1.0:
             raise ValueError("tone_contrast and specular_haze must lie in [0, 1] and vignetting in [0, 1)")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality[0] <= self.jpeg_quality[1] <= 100:
@@ -147,8 +158,8 @@ class SynthesisConfig:
 
 #: The fields of ``SynthesisConfig`` that make photos as phones take them, each a lever of its own
 #: (off by default: one 45 deg camera, plain sRGB).
-PHONE_LEVERS = ("fov_range", "cast_in_diffuse", "tone_contrast", "vignetting", "flash_cone", "jpeg_quality",
-                "tilt_deg")
+PHONE_LEVERS = ("fov_range", "cast_in_diffuse", "tone_contrast", "highlight_compression", "vignetting", "flash_cone",
+                "jpeg_quality", "tilt_deg")
 
 #: Photos as phones take them: the levers on (and a wider white-balance error), as the real-photo
 #: training and validation use them.
@@ -231,12 +242,15 @@ class PhoneCamera:
         tone: (B,) strength of the S-shaped tone curve (``SynthesisConfig.tone_contrast``), or None.
         vignetting: (B,) darkening at the corners (``SynthesisConfig.vignetting``), or None.
         jpeg_quality: B JPEG qualities, or None: no JPEG.
+        white: (B,) white point of the highlight compression (``SynthesisConfig.highlight_compression``),
+            or None.
     """
 
     gains: torch.Tensor
     tone: torch.Tensor | None = None
     vignetting: torch.Tensor | None = None
     jpeg_quality: list[int] | None = None
+    white: torch.Tensor | None = None
 
     def repeated(self, times: int) -> PhoneCamera:
         """The settings of ``times`` copies of the batch, one after the other."""
@@ -244,7 +258,8 @@ class PhoneCamera:
             return None if values is None else values * times if isinstance(values, list) else values.repeat(
                 times, *([1] * (values.ndim - 1)))
 
-        return PhoneCamera(repeat(self.gains), repeat(self.tone), repeat(self.vignetting), repeat(self.jpeg_quality))
+        return PhoneCamera(repeat(self.gains), repeat(self.tone), repeat(self.vignetting), repeat(self.jpeg_quality),
+                           repeat(self.white))
 
 
 def sample_camera(batch: int, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig()) -> PhoneCamera:
@@ -258,7 +273,10 @@ def sample_camera(batch: int, generator: torch.Generator, config: SynthesisConfi
     if config.jpeg_quality is not None:
         low, high = config.jpeg_quality
         quality = torch.randint(low, high + 1, (batch,), generator=generator).tolist()
-    return PhoneCamera(gains, tone, vignetting, quality)
+    white = None
+    if config.highlight_compression[1] > 1.0:
+        white = _log_uniform(batch, config.highlight_compression, generator)
+    return PhoneCamera(gains, tone, vignetting, quality, white)
 
 
 def simulate_photo(radiance: torch.Tensor, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig(),
@@ -289,6 +307,8 @@ def simulate_photo(radiance: torch.Tensor, generator: torch.Generator, config: S
     read = _log_uniform(batch, config.read_noise, generator).view(batch, 1, 1, 1).to(radiance)
     noise = torch.randn(signal.shape, generator=generator).to(radiance)
     photo = signal + noise * torch.sqrt(shot * signal.clamp(min=0) + read * read)
+    if camera.white is not None:
+        photo = compress_highlights(photo, camera.white.view(batch, 1, 1, 1).to(radiance))
     photo = photo.clamp(0.0, 1.0)
     if not config.quantize and camera.tone is None:
         return photo
@@ -300,6 +320,23 @@ def simulate_photo(radiance: torch.Tensor, generator: torch.Generator, config: S
         if camera.jpeg_quality is not None:
             encoded = jpeg_round_trip(encoded, camera.jpeg_quality)
     return srgb_to_linear(encoded)
+
+
+#: The linear grey level the highlight compression keeps (``compress_highlights``).
+COMPRESSION_MID_GREY = 0.18
+
+
+def compress_highlights(linear: torch.Tensor, white: torch.Tensor) -> torch.Tensor:
+    """A phone's highlight compression of linear values (``SynthesisConfig.highlight_compression``):
+    the extended Reinhard curve y = x (1 + x / W^2) / (1 + x) of x = g * linear, which maps W to 1,
+    with the gain g that keeps ``COMPRESSION_MID_GREY`` (m) where it was, the root of
+    (g m)^2 / W^2 + (1 - m) g m - m = 0. W = 1 is the identity; negative values (noise) are kept."""
+    mid = COMPRESSION_MID_GREY
+    w2 = white * white
+    scaled_mid = 0.5 * w2 * (torch.sqrt((1.0 - mid) ** 2 + 4.0 * mid / w2) - (1.0 - mid))
+    x = linear * (scaled_mid / mid)
+    positive = x.clamp(min=0.0)
+    return torch.where(x > 0, positive * (1.0 + positive / w2) / (1.0 + positive), x)
 
 
 def tone_curve(encoded: torch.Tensor, strength: torch.Tensor) -> torch.Tensor:

@@ -156,7 +156,7 @@ def test_the_phone_levers_are_off_by_default_and_draw_nothing():
     assert synth.sample_fov(generator, config) == constants.DEFAULT_FOV_DEG
     assert torch.equal(generator.get_state(), state)
     camera = synth.sample_camera(3, torch.Generator().manual_seed(5), config)
-    assert camera.tone is None and camera.vignetting is None and camera.jpeg_quality is None
+    assert camera.tone is None and camera.vignetting is None and camera.jpeg_quality is None and camera.white is None
     torch.testing.assert_close(camera.gains, synth.sample_gains(3, torch.Generator().manual_seed(5), config))
 
 
@@ -237,6 +237,39 @@ def test_tone_curve_keeps_black_grey_white_and_order():
     torch.testing.assert_close(synth.tone_curve(values, torch.tensor(0.0)), values)
     strong = synth.tone_curve(values, torch.tensor(1.0))
     assert strong[25] < values[25] and strong[75] > values[75]  # shadows darker, highlights brighter
+
+
+def test_highlight_compression_keeps_mid_grey_maps_its_white_point_to_one_and_is_off_at_one():
+    values = torch.tensor([0.0, 0.02, 0.18, 0.5, 1.0, 3.0, 10.0])
+    torch.testing.assert_close(synth.compress_highlights(values, torch.tensor(1.0)), values)
+    for white in (2.0, 8.0):
+        # The reference gain: bisection on y(g m) = m, the extended Reinhard curve written out.
+        def curve(x):
+            return x * (1 + x / white**2) / (1 + x)
+
+        low, high = 1.0, 2.0
+        for _ in range(60):
+            gain = 0.5 * (low + high)
+            low, high = (gain, high) if curve(gain * 0.18) < 0.18 else (low, gain)
+        compressed = synth.compress_highlights(values, torch.tensor(white))
+        torch.testing.assert_close(compressed, curve(gain * values), atol=1e-6, rtol=1e-5)
+        assert float(compressed[2]) == pytest.approx(0.18, abs=1e-6)
+        assert float(synth.compress_highlights(torch.tensor(white / gain), torch.tensor(white))) == pytest.approx(1.0)
+        assert (compressed.diff() > 0).all() and compressed[1] > values[1] and compressed[4] < 1.0
+
+
+def test_compressed_highlights_clip_less_and_the_lever_draws_nothing_when_off():
+    maps = random_maps(2, 32, seed=5)
+    maps[:, constants.ROUGHNESS] = 0.1
+    maps[:, constants.SPECULAR] = 0.9
+    plain = synth.synthesize(maps, torch.Generator().manual_seed(2), _noiseless())
+    compressed = synth.synthesize(maps, torch.Generator().manual_seed(2), _noiseless(highlight_compression=(8.0, 8.0)))
+    assert (compressed.photos >= 0.999).float().mean() < 0.5 * (plain.photos >= 0.999).float().mean()
+    assert torch.equal(compressed.maps, plain.maps)  # the target is the material as it is
+    off = synth.synthesize(maps, torch.Generator().manual_seed(2), _noiseless(highlight_compression=(1.0, 1.0)))
+    assert torch.equal(off.photos, plain.photos)
+    with pytest.raises(ValueError, match="highlight_compression"):
+        synth.SynthesisConfig(highlight_compression=(0.5, 2.0))
 
 
 def test_vignetting_darkens_the_corners_by_its_strength():
