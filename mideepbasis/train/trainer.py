@@ -291,13 +291,16 @@ class Trainer:
 
     def _anchor_loss(self, output: DeepBasisOutput, batch: TrainingBatch) -> torch.Tensor:
         """The supervised L1 between ``output`` (of ``batch.inputs``) and the anchor's maps of the
-        same photos, on a plain batch (``TrainConfig.anchor``); zero on the others and without an anchor."""
+        same photos, the diffuse compared as the run's supervised loss compares it
+        (``diffuse_loss_encoded``), on a plain batch (``TrainConfig.anchor``); zero on the others
+        and without an anchor."""
         if self.anchor is None or not batch.plain:
             return torch.zeros((), device=self.device)
         with torch.no_grad(), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.bf16):
             answer = self.anchor(batch.inputs.to(self.device), batch.lights.to(self.device), fov=batch.fov)
         return supervised_loss(output, answer.maps.float(), self.config.normal_weight,
-                               signed_target=answer.signed_maps.float())
+                               signed_target=answer.signed_maps.float(),
+                               diffuse_encoded=self.config.diffuse_loss_encoded)
 
     def _with_rendering_loss(self, loss: torch.Tensor, predicted: torch.Tensor, target: torch.Tensor
                              ) -> tuple[torch.Tensor, dict]:

@@ -42,10 +42,13 @@ def test_synthesis_says_which_batches_the_plain_camera_took():
         assert (batch.fov == SynthesisConfig().fov) or not batch.plain
 
 
-def test_the_anchor_term_is_the_l1_to_the_anchors_maps_on_plain_batches_only(tmp_path, anchor_file):
+@pytest.mark.parametrize("encoded", [False, True])
+def test_the_anchor_term_is_the_l1_to_the_anchors_maps_on_plain_batches_only(tmp_path, anchor_file, encoded):
+    """The anchor's term is the run's supervised loss against the anchor's maps, the diffuse
+    compared sRGB-encoded where the run's is (``diffuse_loss_encoded``)."""
     maps = procedural_maps()
-    trainer = Trainer(tiny_config(tmp_path, anchor=str(anchor_file), synthesis={"plain_probability": 0.5, **PHONE}),
-                      progress=False)
+    trainer = Trainer(tiny_config(tmp_path, anchor=str(anchor_file), synthesis={"plain_probability": 0.5, **PHONE},
+                                  diffuse_loss_encoded=encoded), progress=False)
     anchor = load_model(anchor_file).eval()
     for seed in range(6):
         batch = synthesize(maps, torch.Generator().manual_seed(seed), trainer.synthesis)
@@ -55,7 +58,7 @@ def test_the_anchor_term_is_the_l1_to_the_anchors_maps_on_plain_batches_only(tmp
             if batch.plain:
                 answer = anchor(batch.inputs, batch.lights, fov=batch.fov)
                 expected = supervised_loss(output, answer.maps, trainer.config.normal_weight,
-                                           signed_target=answer.signed_maps)
+                                           signed_target=answer.signed_maps, diffuse_encoded=encoded)
                 assert float(term) == pytest.approx(float(expected), rel=1e-5)
                 assert float(term) > 0  # the run's fresh network differs from the trained anchor
             else:
