@@ -81,12 +81,12 @@ class SynthesisConfig:
 
     highlight_compression: tuple[float, float] = (1.0, 1.0)
     """Range (log-uniform, per photo) of the white point W of a phone's highlight compression
-    [multiples of the sensor's clipping level]. Phones keep a flash highlight from clipping (the
-    real flash photos have 0 - 1.4 % of clipped pixels) by compressing it: here the extended
-    Reinhard curve y = x (1 + x / W^2) / (1 + x) on the linear signal, which maps W to 1, after a
-    gain that keeps a mid grey (0.18) where it was, before the clipping and the sRGB encoding. A
-    highlight then has a flatter top than the GGX lobe that made it, which a network trained on
-    linear highlights reads as a peak over a darker diffuse. 1: none."""
+    (``compress_highlights``). Phones keep a flash highlight from clipping (the real flash photos
+    have 0 - 1.4 % of clipped pixels) by compressing it: here the extended Reinhard curve
+    y = x (1 + x / W^2) / (1 + x) of x = g times the linear signal, before the clipping and the
+    sRGB encoding, with the gain g that keeps a mid grey (0.18) where it was: the signal W / g
+    reaches 1, and values below mid grey are lifted by up to g (1.14 at W = 2, 1.20 at W = 8). A
+    highlight then has a flatter top than the GGX lobe that made it. 1: none."""
 
     vignetting: tuple[float, float] = (0.0, 0.0)
     """Range (uniform, per photo) of the lens's darkening v at the image corners: the photo times
@@ -242,15 +242,15 @@ class PhoneCamera:
         tone: (B,) strength of the S-shaped tone curve (``SynthesisConfig.tone_contrast``), or None.
         vignetting: (B,) darkening at the corners (``SynthesisConfig.vignetting``), or None.
         jpeg_quality: B JPEG qualities, or None: no JPEG.
-        white: (B,) white point of the highlight compression (``SynthesisConfig.highlight_compression``),
-            or None.
+        white_point: (B,) white point of the highlight compression
+            (``SynthesisConfig.highlight_compression``), or None.
     """
 
     gains: torch.Tensor
     tone: torch.Tensor | None = None
     vignetting: torch.Tensor | None = None
     jpeg_quality: list[int] | None = None
-    white: torch.Tensor | None = None
+    white_point: torch.Tensor | None = None
 
     def repeated(self, times: int) -> PhoneCamera:
         """The settings of ``times`` copies of the batch, one after the other."""
@@ -259,7 +259,7 @@ class PhoneCamera:
                 times, *([1] * (values.ndim - 1)))
 
         return PhoneCamera(repeat(self.gains), repeat(self.tone), repeat(self.vignetting), repeat(self.jpeg_quality),
-                           repeat(self.white))
+                           repeat(self.white_point))
 
 
 def sample_camera(batch: int, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig()) -> PhoneCamera:
@@ -273,10 +273,10 @@ def sample_camera(batch: int, generator: torch.Generator, config: SynthesisConfi
     if config.jpeg_quality is not None:
         low, high = config.jpeg_quality
         quality = torch.randint(low, high + 1, (batch,), generator=generator).tolist()
-    white = None
+    white_point = None
     if config.highlight_compression[1] > 1.0:
-        white = _log_uniform(batch, config.highlight_compression, generator)
-    return PhoneCamera(gains, tone, vignetting, quality, white)
+        white_point = _log_uniform(batch, config.highlight_compression, generator)
+    return PhoneCamera(gains, tone, vignetting, quality, white_point)
 
 
 def simulate_photo(radiance: torch.Tensor, generator: torch.Generator, config: SynthesisConfig = SynthesisConfig(),
@@ -307,8 +307,8 @@ def simulate_photo(radiance: torch.Tensor, generator: torch.Generator, config: S
     read = _log_uniform(batch, config.read_noise, generator).view(batch, 1, 1, 1).to(radiance)
     noise = torch.randn(signal.shape, generator=generator).to(radiance)
     photo = signal + noise * torch.sqrt(shot * signal.clamp(min=0) + read * read)
-    if camera.white is not None:
-        photo = compress_highlights(photo, camera.white.view(batch, 1, 1, 1).to(radiance))
+    if camera.white_point is not None:
+        photo = compress_highlights(photo, camera.white_point.view(batch, 1, 1, 1).to(radiance))
     photo = photo.clamp(0.0, 1.0)
     if not config.quantize and camera.tone is None:
         return photo
@@ -326,17 +326,18 @@ def simulate_photo(radiance: torch.Tensor, generator: torch.Generator, config: S
 COMPRESSION_MID_GREY = 0.18
 
 
-def compress_highlights(linear: torch.Tensor, white: torch.Tensor) -> torch.Tensor:
+def compress_highlights(linear: torch.Tensor, white_point: torch.Tensor) -> torch.Tensor:
     """A phone's highlight compression of linear values (``SynthesisConfig.highlight_compression``):
-    the extended Reinhard curve y = x (1 + x / W^2) / (1 + x) of x = g * linear, which maps W to 1,
-    with the gain g that keeps ``COMPRESSION_MID_GREY`` (m) where it was, the root of
-    (g m)^2 / W^2 + (1 - m) g m - m = 0. W = 1 is the identity; negative values (noise) are kept."""
+    the extended Reinhard curve y = x (1 + x / W^2) / (1 + x) of x = g * linear, which maps x = W
+    to 1, with the gain g that keeps ``COMPRESSION_MID_GREY`` (m) where it was, the root of
+    (g m)^2 / W^2 + (1 - m) g m - m = 0; ``white_point`` W broadcasts against ``linear``. W = 1 is
+    the identity; negative values (noise) are only scaled by g."""
     mid = COMPRESSION_MID_GREY
-    w2 = white * white
-    scaled_mid = 0.5 * w2 * (torch.sqrt((1.0 - mid) ** 2 + 4.0 * mid / w2) - (1.0 - mid))
+    white_squared = white_point * white_point
+    scaled_mid = 0.5 * white_squared * (torch.sqrt((1.0 - mid) ** 2 + 4.0 * mid / white_squared) - (1.0 - mid))
     x = linear * (scaled_mid / mid)
     positive = x.clamp(min=0.0)
-    return torch.where(x > 0, positive * (1.0 + positive / w2) / (1.0 + positive), x)
+    return torch.where(x > 0, positive * (1.0 + positive / white_squared) / (1.0 + positive), x)
 
 
 def tone_curve(encoded: torch.Tensor, strength: torch.Tensor) -> torch.Tensor:

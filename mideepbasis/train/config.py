@@ -287,6 +287,8 @@ class TrainConfig:
             if self.normal_pool or self.local_pool or not self.synthesis.plain_probability:
                 raise ValueError("anchor keeps the anchor's answers on plain batches: it needs the whole network "
                                  "(no normal_pool or local_pool) and synthesis.plain_probability > 0")
+        if self.keep_validated and not self.validate_every:
+            raise ValueError("keep_validated keeps the weights of validated steps: it needs validate_every")
         if self.local_pool_keep and not (self.local_pool and self.init):
             raise ValueError("local_pool_keep keeps maps as the init gives them: it needs local_pool and init")
 

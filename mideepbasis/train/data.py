@@ -173,13 +173,15 @@ class LocalUnitBatch:
     """A batch of the local pool (``LocalUnitPool``)."""
 
     local_inputs: torch.Tensor
-    """(B, input channels + 3 + N, H, W): what the frozen rest gives the local unit."""
+    """(B, input channels + 3 + N, H, W): what the frozen rest gives the local unit (the error map
+    of the shifted global bases with ``TrainConfig.global_roughness_jitter``)."""
 
     weights: torch.Tensor
     """(B, N, H, W) the frozen weights."""
 
     global_bases: torch.Tensor
-    """(B, N, 10) the frozen global bases (signed space)."""
+    """(B, N, 10) the frozen global bases (signed space), their lobe shifted with
+    ``TrainConfig.global_roughness_jitter`` / ``global_specular_jitter``."""
 
     slope: torch.Tensor
     """(B, 2, H, W) the frozen normal unit's slope (zeros without one)."""
@@ -190,11 +192,9 @@ class LocalUnitBatch:
     diffuse_weights: torch.Tensor | None = None
     """(B, 1, H, W) weights of the diffuse loss (``TrainConfig.highlight_weight``), or None: 1."""
 
-    kept_maps: torch.Tensor | None = None
-    """(B, 10, H, W) the maps of the init's network (``TrainConfig.local_pool_keep``), or None."""
-
     kept_signed: torch.Tensor | None = None
-    """(B, 10, H, W) the same blend in the signed space, or None."""
+    """(B, 10, H, W) the blend of the init's network, signed space (``TrainConfig.local_pool_keep``;
+    its maps are ``to_maps`` of it), or None."""
 
 
 def shifted_lobes(global_bases: torch.Tensor, roughness_shift: torch.Tensor, specular_octaves: torch.Tensor
@@ -213,9 +213,10 @@ def shifted_lobes(global_bases: torch.Tensor, roughness_shift: torch.Tensor, spe
 class LocalUnitPool(PhotographedPool):
     """The training data of the local unit alone (``TrainConfig.local_pool``): for each material of
     the pool (``PhotographedPool``), what ``stage_of`` (network inputs, lights, field of view, the
-    global lobe's shift: roughness (1,) and specular octaves (1,)) gives: the local unit's inputs, the
-    weights, the global bases, the normal unit's slope, from the frozen rest of the network, and the
-    kept maps (``TrainConfig.local_pool_keep``: maps and signed, or None); beside the true maps."""
+    global lobe's shift: roughness (1,) and specular octaves (1,)) gives: the local unit's inputs and
+    the global bases (both with the lobe shifted, ``TrainConfig.global_roughness_jitter``), the
+    weights, the normal unit's slope, from the frozen rest of the network, and the init's blend of
+    the unshifted inputs (``TrainConfig.local_pool_keep``, signed space, or None); beside the true maps."""
 
     def __init__(self, materials: Dataset, config: TrainConfig, step: int, stage_of):
         self.stage_of = stage_of
@@ -227,9 +228,7 @@ class LocalUnitPool(PhotographedPool):
         self.slope = torch.empty(count, 2, size, size)
         self.maps = torch.empty(count, 10, size, size)
         self.diffuse_weights = torch.empty(count, 1, size, size) if config.highlight_weight else None
-        kept = (count, 10, size, size)
-        self.kept_maps = torch.empty(kept) if config.local_pool_keep else None
-        self.kept_signed = torch.empty(kept) if config.local_pool_keep else None
+        self.kept_signed = torch.empty(count, 10, size, size) if config.local_pool_keep else None
         super().__init__(materials, config, step, count, config.local_pool_refresh)
 
     def lobe_shift(self, number: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -245,12 +244,12 @@ class LocalUnitPool(PhotographedPool):
 
     def _store(self, slot: int, maps: torch.Tensor, batch: TrainingBatch, number: int) -> None:
         # Each material at the field of view it was photographed at (``SynthesisConfig.fov_range``).
-        local_inputs, weights, global_bases, slope, kept = self.stage_of(batch.inputs, batch.lights, batch.fov,
-                                                                         *self.lobe_shift(number))
+        local_inputs, weights, global_bases, slope, kept_signed = self.stage_of(batch.inputs, batch.lights, batch.fov,
+                                                                                *self.lobe_shift(number))
         self.local_inputs[slot], self.weights[slot], self.global_bases[slot] = local_inputs[0], weights[0], global_bases[0]
         self.slope[slot], self.maps[slot] = slope[0], batch.maps[0]
-        if kept is not None:
-            self.kept_maps[slot], self.kept_signed[slot] = kept[0][0], kept[1][0]
+        if kept_signed is not None:
+            self.kept_signed[slot] = kept_signed[0]
         if self.diffuse_weights is not None:
             config = self.config
             self.diffuse_weights[slot] = highlight_weights(batch.maps, batch.lights, config.highlight_weight,
@@ -260,12 +259,13 @@ class LocalUnitPool(PhotographedPool):
     def batch(self, generator: torch.Generator) -> LocalUnitBatch:
         """``config.batch`` materials of the pool, drawn at random."""
         slots = torch.randint(0, self.size, (self.config.batch,), generator=generator)
+
         def drawn(stored: torch.Tensor | None) -> torch.Tensor | None:
             return None if stored is None else stored[slots]
 
         return LocalUnitBatch(self.local_inputs[slots], self.weights[slots], self.global_bases[slots],
                               self.slope[slots], self.maps[slots], drawn(self.diffuse_weights),
-                              drawn(self.kept_maps), drawn(self.kept_signed))
+                              drawn(self.kept_signed))
 
 
 

@@ -20,7 +20,7 @@ from ..configs import differences
 from ..data.synth import PHONE_LEVERS, SynthesisConfig, TrainingBatch, Variation, synthesize
 from ..errors import InputError, MideepbasisError
 from ..model.checkpoint import CheckpointError, non_finite_tensors, previous_path, read_checkpoint, save_checkpoint
-from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, to_signed
+from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, to_maps, to_signed
 from .config import LOCAL_UNIT_FIELDS, RESUMABLE_CHANGES, TrainConfig
 from .data import (LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials,
                    shifted_lobes)
@@ -347,9 +347,10 @@ class Trainer:
             deviations = model.local_deviations(batch.local_inputs.to(self.device), weights, global_bases)
         output = self._local_blend(weights, global_bases, deviations.float(), batch.slope.to(self.device))
         signed_target = None
-        if batch.kept_maps is not None:
+        if batch.kept_signed is not None:
             # The blend itself (signed space) for the map loss, its maps for the rendering loss.
-            kept_maps, kept_signed = batch.kept_maps.to(self.device), batch.kept_signed.to(self.device)
+            kept_signed = batch.kept_signed.to(self.device)
+            kept_maps = to_maps(kept_signed)
             maps, signed_target = maps.clone(), to_signed(maps)
             for name in config.local_pool_keep:
                 channels = constants.MAP_SLICES[name]
@@ -364,8 +365,8 @@ class Trainer:
 
     def _local_blend(self, weights: torch.Tensor, global_bases: torch.Tensor, deviations: torch.Tensor,
                      slope: torch.Tensor) -> DeepBasisOutput:
-        """The local unit's deviations blended with the frozen weights and global bases, the normal
-        unit's slope added."""
+        """The local unit's deviations (B, N, 10, H, W) blended with the frozen weights (B, N, H, W)
+        and global bases (B, N, 10) (signed space), the normal unit's slope (B, 2, H, W) added."""
         scaled = getattr(self.model, "module", self.model).config.normal_slope_scaled
         return DeepBasisOutput.from_bases(weights, global_bases, add_slope(global_bases, deviations, slope, scaled),
                                           keep_bases=False)
@@ -392,11 +393,11 @@ class Trainer:
                 slope = torch.zeros_like(stage.error[:, :2])
                 if hasattr(model, "normal_unit"):
                     slope = model.normal_slope(stage, lights, fov)
-                kept = None
+                kept_signed = None
                 if self.kept_from is not None:  # the init's answer to the bases as predicted
                     blend = self._local_blend(stage.weights, stage.global_bases, self.kept_from.local_deviations(
                         stage.local_inputs, stage.weights, stage.global_bases), slope)
-                    kept = (blend.maps.float().cpu(), blend.signed_maps.float().cpu())
+                    kept_signed = blend.signed_maps.float().cpu()
                 local_inputs, global_bases = stage.local_inputs, stage.global_bases
                 if bool(roughness_shift.any() or specular_octaves.any()):
                     global_bases = shifted_lobes(global_bases, roughness_shift.to(self.device),
@@ -404,7 +405,7 @@ class Trainer:
                     error = model.error_map(stage.weights, global_bases, stage.photo, lights, fov)
                     local_inputs = torch.cat([inputs, error.to(inputs), stage.weights.to(inputs)], dim=1)
                 return (local_inputs.float().cpu(), stage.weights.float().cpu(), global_bases.float().cpu(),
-                        slope.float().cpu(), kept)
+                        slope.float().cpu(), kept_signed)
 
             return LocalUnitPool(self.materials(), self.config, self.step, stage_of)
         return NormalUnitPool(self.materials(), self.config, self.step)

@@ -5,6 +5,7 @@ exactly."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import pytest
@@ -202,6 +203,9 @@ def test_the_local_unit_alone_learns_from_the_pool_and_resumes_exactly(tmp_path)
     torch.manual_seed(0)
     source = save_checkpoint(tmp_path / "source.safetensors", DeepBasisNet(preset("tiny", normal_unit_width=4)))
     assert_only_the_unit_learns_and_resumes_exactly(local_pool_config, tmp_path, source, "local_unit")
+    # With the global lobe shifted too (each material's own draw, the same after a resumption).
+    jittered = functools.partial(local_pool_config, global_roughness_jitter=0.2, global_specular_jitter=1.0)
+    assert_only_the_unit_learns_and_resumes_exactly(jittered, tmp_path / "jittered", source, "local_unit")
     # On a pool that never changes the local unit fits its materials.
     trainer = Trainer(local_pool_config(tmp_path / "c", init=str(source), steps=60, batch=3), progress=False)
     batch = next(trainer.pool_batches())
@@ -283,13 +287,14 @@ def test_the_local_pool_shows_the_local_unit_a_shifted_global_lobe_and_keeps_the
     trainer = Trainer(config, progress=False)
     pool, model, config = trainer.unit_pool(), trainer.model, trainer.config
     channels = config.network.input_channels
-    shifts = []
+    shifts, stages = [], []
     for slot in range(3):
         maps = trainer.materials()[slot][None]
         photographed = synthesize(maps, torch.Generator().manual_seed(config.seed * 1_000_003 + slot), config.synthesis)
         with torch.no_grad():
             stage = model.basis_stage(photographed.inputs, photographed.lights, config.synthesis.fov)
             unshifted = model(photographed.inputs, photographed.lights, fov=config.synthesis.fov).maps
+        stages.append(stage)
         predicted, stored = to_maps(stage.global_bases, dim=2), to_maps(pool.global_bases[slot:slot + 1], dim=2)
         roughness_shift = stored[0, :, 6] - predicted[0, :, 6]
         inside = (predicted[0, :, 6] > 0.35) & (predicted[0, :, 6] < 0.65)  # bases the shift cannot clip
@@ -308,11 +313,13 @@ def test_the_local_pool_shows_the_local_unit_a_shifted_global_lobe_and_keeps_the
         torch.testing.assert_close(pool.local_inputs[slot:slot + 1, channels:channels + 3], expected_error,
                                    atol=2e-4, rtol=0)
         assert (pool.local_inputs[slot, channels:channels + 3] - stage.error[0]).abs().max() > 1e-3
-        torch.testing.assert_close(pool.kept_maps[slot:slot + 1, 6:], unshifted[:, 6:], atol=1e-5, rtol=0)
+        torch.testing.assert_close(to_maps(pool.kept_signed[slot:slot + 1])[:, 6:], unshifted[:, 6:], atol=1e-5, rtol=0)
     assert len(set(round(shift, 4) for shift in shifts)) == 3  # a draw of each material's own
-    # Off, the pool holds the bases as predicted; without the pool the jitter is refused.
-    plain = Trainer(local_pool_config(tmp_path / "plain", init=str(source)), progress=False).unit_pool()
-    assert plain.kept_maps is None
+    # Off, the pool holds the bases and the error map as predicted; without the pool the jitter is refused.
+    plain = Trainer(local_pool_config(tmp_path / "plain", init=str(source), local_pool_keep=("roughness",)),
+                    progress=False).unit_pool()
+    torch.testing.assert_close(plain.global_bases[2:3], stages[2].global_bases, atol=1e-6, rtol=0)
+    torch.testing.assert_close(plain.local_inputs[2:3, channels:channels + 3], stages[2].error, atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="they need local_pool"):
         tiny_config(tmp_path, global_roughness_jitter=0.1)
     with pytest.raises(ValueError, match="must be 0"):

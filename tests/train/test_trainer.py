@@ -195,3 +195,5 @@ def test_keep_validated_keeps_the_weights_of_every_validated_step(tmp_path):
     assert any(not torch.equal(first.state_dict()[name], value) for name, value in final.items())
     Trainer(tiny_config(tmp_path / "plain", steps=2, validate_every=2, validation_count=2), progress=False).run()
     assert not list((tmp_path / "plain").glob("**/step_*.safetensors"))
+    with pytest.raises(ValueError, match="needs validate_every"):
+        tiny_config(tmp_path, keep_validated=True, validate_every=0)
