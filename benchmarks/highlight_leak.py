@@ -93,7 +93,7 @@ def imprint(diffuse: torch.Tensor, light: torch.Tensor, fov: float, convention: 
 
 def error_map_figures(capturer, photo: torch.Tensor, light: torch.Tensor, fov: float) -> dict:
     """What the local unit starts from, in one network pass (no symmetries) on the photo (3, H, W)
-    under the found flash ``light`` (3,): the mean luminance of its error map (the global blend's
+    under the flash at ``light`` (3,): the mean luminance of its error map (the global blend's
     render, clipped at 1, minus the photo) away from the highlight and under it (the lighting mark's
     brightest ``HIGHLIGHT_SHARE``), and the mean of the diffuse deviations, weighted as blended
     (signed space: -1 is the bound of the local unit's tanh)."""
