@@ -136,6 +136,7 @@ def real_photos(capturer, folder: Path) -> tuple[dict, list[np.ndarray]]:
                               "imprint_local_at_mean": imprint(at_mean[constants.DIFFUSE], light, result.fov,
                                                                capturer.convention),
                               "specular_tint": specular_tint(maps[constants.SPECULAR]),
+                              "clipped_share": float((result.photo.amax(dim=0) >= CLIPPED).float().mean()),
                               **error_map_figures(capturer, result.photo, light, result.fov)}
         with torch.no_grad():
             rerender = render_flash(maps[None], light.view(1, 1, 3), fov=result.fov, convention=capturer.convention)[0, 0]
@@ -203,6 +204,8 @@ def summary(figures: dict) -> dict:
     if "error_map_outside" in values:
         result.update({f"mean_{key}": float(values[key].mean())
                        for key in ("error_map_outside", "error_map_highlight", "diffuse_deviation")})
+    if "clipped_share" in values:
+        result["largest_clipped_share"] = float(values["clipped_share"].max())
     if "leak" in values:
         result.update({"mean_leak": float(values["leak"].mean()),
                        "mean_abs_true_imprint": float(np.abs(values["true_imprint"]).mean())})
