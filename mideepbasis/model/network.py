@@ -629,7 +629,7 @@ class DeepBasisNet(nn.Module):
             raise ValueError("the local unit needs the flash positions (lights) for its error map")
         photo = decode_photo(inputs)
         error = self.error_map(weights, global_bases, photo, lights, fov)
-        return BasisStage(weights=weights, global_bases=global_bases, local_inputs=torch.cat([inputs, error, weights], dim=1),
+        return BasisStage(weights=weights, global_bases=global_bases, local_inputs=local_unit_inputs(inputs, error, weights),
                           photo=photo, error=error, extras=extras)
 
     def error_map(self, weights: torch.Tensor, global_bases: torch.Tensor, photo: torch.Tensor, lights: torch.Tensor,
@@ -686,6 +686,12 @@ class DeepBasisNet(nn.Module):
             slope = weight * (upsample_bilinear(slope, height, width) if octave else slope)
             total = slope if total is None else total + slope
         return total
+
+
+def local_unit_inputs(inputs: torch.Tensor, error: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """(B, input channels + 3 + N, H, W) what the local unit reads: the network's inputs, the error
+    map (B, 3, H, W, ``DeepBasisNet.error_map``) and the weights (B, N, H, W), in that order."""
+    return torch.cat([inputs, error, weights], dim=1)
 
 
 def slope_change(slope: torch.Tensor) -> torch.Tensor:

@@ -20,7 +20,7 @@ from ..configs import differences
 from ..data.synth import PHONE_LEVERS, SynthesisConfig, TrainingBatch, Variation, synthesize
 from ..errors import InputError, MideepbasisError
 from ..model.checkpoint import CheckpointError, non_finite_tensors, previous_path, read_checkpoint, save_checkpoint
-from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, to_maps, to_signed
+from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, local_unit_inputs, to_maps, to_signed
 from .config import LOCAL_UNIT_FIELDS, RESUMABLE_CHANGES, TrainConfig
 from .data import (LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials,
                    shifted_lobes)
@@ -403,7 +403,7 @@ class Trainer:
                     global_bases = shifted_lobes(global_bases, roughness_shift.to(self.device),
                                                  specular_octaves.to(self.device))
                     error = model.error_map(stage.weights, global_bases, stage.photo, lights, fov)
-                    local_inputs = torch.cat([inputs, error.to(inputs), stage.weights.to(inputs)], dim=1)
+                    local_inputs = local_unit_inputs(inputs, error, stage.weights)
                 return (local_inputs.float().cpu(), stage.weights.float().cpu(), global_bases.float().cpu(),
                         slope.float().cpu(), kept_signed)
 
