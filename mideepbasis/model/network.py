@@ -35,6 +35,19 @@ from .inputs import EXTRA_INPUTS, RELIEF_CHANNELS, ModelInfo, decode_photo, inpu
 from .nafnet import NAFNet
 
 
+#: The local unit's error maps (``NetworkConfig.error_map``).
+ERROR_MAPS = ("clipped", "log_ratio")
+
+#: Floor added to the render and the photo before their log ratio (``log_ratio_error``) [linear]:
+#: about the noise of a phone photo's darkest values, so that black pixels do not dominate.
+LOG_RATIO_FLOOR = 0.01
+
+#: Bound of the log ratio's magnitude (``log_ratio_error``): a render 55 times the photo's value.
+LOG_RATIO_LIMIT = 4.0
+
+#: Linear photo values at or above this are clipped: a render above one tells nothing there.
+PHOTO_CLIPPED = 0.98
+
 @dataclass(frozen=True)
 class NetworkConfig:
     """Sizes and switches of DeepBasisNet."""
@@ -121,7 +134,17 @@ class NetworkConfig:
     (older checkpoints): added to the sum as it is, whose length the shipped local unit makes about
     1.7 (its deviations' z saturates at +1), which weakens the unit's relief by as much."""
 
+    error_map: str = field(default="clipped", metadata={"choices": ERROR_MAPS})
+    """What the local unit's error map holds (``DeepBasisNet.error_map``): ``clipped``, the global
+    blend's render clipped to [0, 1] minus the photo (the paper's); ``log_ratio``, the log of the
+    unclipped render over the photo (``log_ratio_error``). Clipped, the render of a highlight the
+    global lobe overshoots reads 1 minus the photo whatever the overshoot: the unit cannot tell a
+    lobe's miss from a diffuse one, and takes it out of the diffuse. The ratio also makes a
+    diffuse's miss one value across the flash's falloff."""
+
     def __post_init__(self):
+        if self.error_map not in ERROR_MAPS:
+            raise ValueError(f"unknown error map {self.error_map!r}; expected one of {list(ERROR_MAPS)}")
         unknown = sorted(set(self.extra_inputs) - set(EXTRA_INPUTS))
         if unknown:
             raise ValueError(f"unknown extra inputs {unknown}; expected some of {list(EXTRA_INPUTS)}")
@@ -646,6 +669,8 @@ class DeepBasisNet(nn.Module):
         with torch.autocast(photo.device.type, enabled=False):
             rendered = render_flash(global_maps.float(), lights.view(photo.shape[0], 1, 3).float(), fov=fov,
                                     convention=self.config.convention, extent=self.config.plane_extent)[:, 0]
+        if self.config.error_map == "log_ratio":
+            return log_ratio_error(rendered, photo.float())
         return rendered.clamp(0.0, 1.0) - photo.float()
 
     def local_deviations(self, local_inputs: torch.Tensor, weights: torch.Tensor,
@@ -686,6 +711,16 @@ class DeepBasisNet(nn.Module):
             slope = weight * (upsample_bilinear(slope, height, width) if octave else slope)
             total = slope if total is None else total + slope
         return total
+
+
+def log_ratio_error(rendered: torch.Tensor, photo: torch.Tensor) -> torch.Tensor:
+    """The ``log_ratio`` error map: log((render + f) / (photo + f)), f = ``LOG_RATIO_FLOOR``, bounded
+    by +-``LOG_RATIO_LIMIT``; where the photo clipped (``PHOTO_CLIPPED``) a brighter render counts
+    as the photo's value (0). Render and photo (B, 3, H, W) linear; the render unclipped."""
+    rendered = rendered.clamp(min=0.0)
+    rendered = torch.where(photo >= PHOTO_CLIPPED, torch.minimum(rendered, photo), rendered)
+    ratio = torch.log(rendered + LOG_RATIO_FLOOR) - torch.log(photo.clamp(min=0.0) + LOG_RATIO_FLOOR)
+    return ratio.clamp(-LOG_RATIO_LIMIT, LOG_RATIO_LIMIT)
 
 
 def local_unit_inputs(inputs: torch.Tensor, error: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

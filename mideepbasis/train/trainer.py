@@ -151,8 +151,8 @@ class Trainer:
         normal units (a unit whose size differs, or that the checkpoint lacks, starts afresh;
         everything else is loaded), except that a normal unit of the same width and levels with more
         blocks keeps the checkpoint's blocks, the added ones starting as the identity. How the
-        normal unit runs (``normal_unit_octaves``, ``normal_slope_scaled``) may differ too: it
-        needs no weights."""
+        normal unit runs (``normal_unit_octaves``, ``normal_slope_scaled``) and the local unit's
+        error map (``error_map``) may differ too: they need no weights."""
         from dataclasses import replace
 
         from ..model.checkpoint import load_model
@@ -164,7 +164,7 @@ class Trainer:
                    normal_unit_blocks=config.normal_unit_blocks,
                    normal_unit_middle_blocks=config.normal_unit_middle_blocks,
                    normal_unit_octaves=config.normal_unit_octaves, normal_slope_scaled=config.normal_slope_scaled,
-                   **local_fields) != config:
+                   error_map=config.error_map, **local_fields) != config:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
                              "preset) in more than the optional inputs and the sizes of the local and normal units")
         state, target = source.state_dict(), self.model.state_dict()

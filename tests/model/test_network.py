@@ -295,3 +295,46 @@ def test_maps_built_in_bands_are_the_upsampled_outputs(monkeypatch, size):
     monkeypatch.setattr(network, "BAND_PIXELS", 24 * size[1])
     torch.testing.assert_close(output.maps_at(*size), whole, rtol=0.0, atol=1e-6)
     assert network.exact_in_bands(16, size[0]) == (size[0] == 128)
+
+
+@pytest.mark.parametrize("error_map", ["clipped", "log_ratio"])
+def test_the_error_map_is_the_global_blends_render_against_the_photo(error_map):
+    """Both error maps against the reference renderer: the clipped render minus the photo, or the
+    log ratio of the unclipped render (brighter than the photo where it clipped: that counts as the
+    photo's value) over the photo, floored at 0.01 and bounded by 4."""
+    from dataclasses import replace
+
+    from mideepbasis import constants
+    from mideepbasis.render import reference
+
+    torch.manual_seed(3)
+    net = DeepBasisNet(replace(preset("tiny"), error_map=error_map)).eval()
+    weights = normalize_weights(torch.rand(1, net.config.num_bases, 16, 16) * 2 - 1)
+    global_bases = torch.rand(1, net.config.num_bases, 10) * 2 - 1
+    global_bases[..., :3] = torch.tensor([0.0, 0.0, 1.0])  # flat: one highlight
+    global_bases[..., 6] = -0.8  # smooth: the render passes 1 under the highlight
+    lights = geometry.light_positions(torch.tensor([[0.05, -0.02]]))
+    fov = constants.DEFAULT_FOV_DEG
+    maps = to_maps(blend(weights, global_bases), upper_hemisphere=False).double()
+    rendered = reference.render_flash(maps, lights.view(1, 1, 3).double(), geometry.flash_intensity(fov, net.config.convention),
+                                      net.config.convention)[:, 0].numpy()
+    highlight = torch.from_numpy(rendered > 1.5)
+    assert 0 < highlight.sum() < highlight.numel() / 4  # the case the two maps differ on
+    photo = torch.rand(1, 3, 16, 16) * 0.5
+    photo[highlight] = 1.0  # the photo clipped there
+    with torch.no_grad():
+        error = net.error_map(weights, global_bases, photo, lights, fov)
+    seen = photo.double().numpy()
+    if error_map == "clipped":
+        expected = np.clip(rendered, 0, 1) - seen
+    else:
+        rendered = np.where((seen >= 0.98) & (rendered > seen), seen, rendered)
+        expected = np.clip(np.log((rendered + 0.01) / (seen + 0.01)), -4, 4)
+    assert np.abs(error.double().numpy() - expected).max() < 2e-3
+
+
+def test_an_unknown_error_map_is_refused():
+    from dataclasses import replace
+
+    with pytest.raises(ValueError, match="unknown error map 'log'"):
+        replace(preset("tiny"), error_map="log")

@@ -181,6 +181,21 @@ def test_init_from_a_network_with_another_local_unit_loads_the_rest(tmp_path):
         Trainer(tiny_config(tmp_path / "n", init=str(path), network={"num_bases": 3}), progress=False)
 
 
+def test_init_with_another_error_map_loads_every_weight(tmp_path):
+    from mideepbasis.model.checkpoint import load_model, save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    source = DeepBasisNet(preset("tiny"))
+    path = save_checkpoint(tmp_path / "source.safetensors", source)
+    trainer = Trainer(tiny_config(tmp_path / "r", init=str(path), network={"error_map": "log_ratio"}), progress=False)
+    assert trainer.model.config.error_map == "log_ratio" and source.config.error_map == "clipped"
+    loaded, original = trainer.model.state_dict(), source.state_dict()
+    assert all(torch.equal(loaded[name], original[name]) for name in original)
+    saved = load_model(save_checkpoint(tmp_path / "saved.safetensors", trainer.model))
+    assert saved.config.error_map == "log_ratio"  # the checkpoint keeps it
+
+
 def test_widened_inputs_start_as_the_narrow_network():
     from mideepbasis.model.network import DeepBasisNet, preset
     from mideepbasis.train import widen_inputs
