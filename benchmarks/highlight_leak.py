@@ -25,7 +25,9 @@ channels' spread: a dielectric's is grey). On the real photos it is measured aga
 basis's local diffuse deviations at their mean over its pixels (``imprint_local_at_mean``): what is
 left is the weights' and the global bases' share. The phone scenes' leak is also given by the
 brightness of their true diffuse (thirds, darkest first) and apart for photos with clipped pixels
-(``leak_by``). For both, what the local unit starts from (``error_map_figures``, one network pass):
+(``leak_by``), with the leak's correlation over the scenes with the captured specular lobe's miss under the
+highlight (``lobe_log_ratio``: the log of the captured maps' lobe rendered alone over the true maps' there; a
+lobe too weak leaves a blob in the diffuse, one too strong a hole). For both, what the local unit starts from (``error_map_figures``, one network pass):
 its error map away from and under the highlight, and its mean diffuse deviation.
 
 Writes the JSON report and ``highlight_leak.png`` beside it: the contact sheet of the real photos,
@@ -153,6 +155,8 @@ def phone_scenes(capturer, folder: Path, convention: str, light_known: bool = Fa
     ``light_known``: the capture is told the flash's true offset instead of searching for it."""
     from mideepbasis.evaluation.real import load_scene, scene_folders, true_maps
 
+    from mideepbasis.train import specular_lobe
+
     figures = {}
     for scene_folder in scene_folders(folder):
         scene = load_scene(scene_folder)
@@ -160,12 +164,16 @@ def phone_scenes(capturer, folder: Path, convention: str, light_known: bool = Fa
         result = capturer.with_config(fov=scene.fov(0), light=light).capture(scene.photos[0])
         maps = result.material.to_tensor()
         truth = true_maps(scene, maps.shape[-1])
-        leak, albedo_leak, _ = highlight_leak(maps[None], truth[None], scene.lights[:1], scene.fov(0), convention)
+        leak, albedo_leak, region = highlight_leak(maps[None], truth[None], scene.lights[:1], scene.fov(0), convention)
+        lobes = specular_lobe(torch.stack([maps, truth]), scene.lights[:1].float().expand(2, 3), scene.fov(0),
+                              convention)[:, 0]
         figures[scene.name] = {"imprint": imprint(maps[constants.DIFFUSE], result.light_position, result.fov,
                                                   convention),
                                "true_imprint": imprint(truth[constants.DIFFUSE], result.light_position, result.fov,
                                                        convention),
                                "leak": float(leak[0]), "leak_in_albedo": float(albedo_leak[0]),
+                               "lobe_log_ratio": float(torch.log(lobes[0][region[0]].mean().clamp(min=1e-6)
+                                                                 / lobes[1][region[0]].mean().clamp(min=1e-6))),
                                "specular_tint": specular_tint(maps[constants.SPECULAR]),
                                "true_diffuse_mean": float(luminance(truth[None, constants.DIFFUSE]).mean()),
                                "clipped_share": float((result.photo.amax(dim=0) >= CLIPPED).float().mean()),
@@ -180,7 +188,8 @@ def signed(value: float | None) -> str:
 
 def leak_by_darkness(figures: dict) -> dict:
     """The scenes' mean leak (relative and in albedo units) in thirds by their true diffuse's mean
-    luminance (darkest first), and apart for the scenes whose photo has clipped pixels and those without."""
+    luminance (darkest first), apart for the scenes whose photo has clipped pixels and those without, and
+    the leak's correlation with the captured lobe's miss (``lobe_log_ratio``)."""
     scenes = sorted(figures.values(), key=lambda figure: figure["true_diffuse_mean"])
 
     def thirds(key: str) -> list[float]:
@@ -190,7 +199,9 @@ def leak_by_darkness(figures: dict) -> dict:
     unclipped = [figure["leak"] for figure in scenes if figure["clipped_share"] == 0]
     return {"by_diffuse_third": thirds("leak"), "in_albedo_by_diffuse_third": thirds("leak_in_albedo"),
             "clipped": float(np.mean(clipped)) if clipped else None, "clipped_scenes": len(clipped),
-            "unclipped": float(np.mean(unclipped)) if unclipped else None}
+            "unclipped": float(np.mean(unclipped)) if unclipped else None,
+            "correlation_with_lobe_log_ratio": float(np.corrcoef([figure["leak"] for figure in scenes],
+                                                                 [figure["lobe_log_ratio"] for figure in scenes])[0, 1])}
 
 
 def summary(figures: dict) -> dict:
@@ -261,7 +272,8 @@ def main() -> None:
               + " / ".join(f"{leak:+.3f}" for leak in by["by_diffuse_third"]) + " (in albedo "
               + " / ".join(f"{leak:+.4f}" for leak in by["in_albedo_by_diffuse_third"]) + ")"
               + f"; {by['clipped_scenes']} scenes with clipped pixels {signed(by['clipped'])}, the others "
-              f"{signed(by['unclipped'])}")
+              f"{signed(by['unclipped'])}; correlation with the captured lobe's log ratio to the true one under the "
+              f"highlight {by['correlation_with_lobe_log_ratio']:+.2f}")
     if args.skip_shared:
         write_report(args.output, "highlight_leak", report)
         return
