@@ -202,6 +202,13 @@ class TrainConfig:
     highlight covers a few percent of a photo, so the plain loss hardly minds a highlight baked
     into the diffuse map (issue 11's demo smudge); 0: off."""
 
+    lobe_weight: float = 0.0
+    """Weight of the specular lobe's loss (the whole network's step; ``losses.lobe_loss``): the
+    predicted maps' lobe, rendered alone under the photo's flash, against the truth's, in log
+    ratios where either shows. One photo fixes the sum of diffuse and lobe under the highlight,
+    so the diffuse takes up the lobe's miss (the leak follows it); the map losses hardly see a
+    lobe ten times too faint, a small roughness error. 0: off."""
+
     diffuse_loss_encoded: bool = False
     """Compare the diffuse map in the supervised loss as sRGB-encoded albedo rather than linear
     (its pixels still weighed by ``highlight_weight``): a blob in the diffuse is seen against the
@@ -272,6 +279,10 @@ class TrainConfig:
         if self.global_roughness_jitter < 0 or self.global_specular_jitter < 0:
             raise ValueError(f"global_roughness_jitter {self.global_roughness_jitter} and global_specular_jitter "
                              f"{self.global_specular_jitter} must be 0 (off) or positive")
+        if self.lobe_weight < 0:
+            raise ValueError(f"lobe_weight {self.lobe_weight} must be 0 (off) or positive")
+        if self.lobe_weight and (self.local_pool or self.normal_pool):
+            raise ValueError("lobe_weight weighs the whole network's step: the unit pools do not take it")
         if (self.global_roughness_jitter or self.global_specular_jitter) and not self.local_pool:
             raise ValueError("global_roughness_jitter and global_specular_jitter change what the local pool gives "
                              "the local unit: they need local_pool")

@@ -1,6 +1,7 @@
 """The losses of training and what they need: the supervised and variation-consistency losses,
 the decoder's saturation penalty, the re-rendering loss and its random lights and views, the
-highlight weights of the diffuse loss, the normal pool's loss, and the learning-rate schedule."""
+highlight weights of the diffuse loss, the specular lobe's loss, the normal pool's loss, and the
+learning-rate schedule."""
 
 from __future__ import annotations
 
@@ -18,13 +19,57 @@ def specular_lobe(maps: torch.Tensor, lights: torch.Tensor, fov: float, conventi
                   extent: float = 1.0) -> torch.Tensor:
     """The luminance (B, 1, H, W) of the maps' (B, 10, H, W) specular lobe alone (their diffuse
     set to zero) rendered under the flashes at ``lights`` (B, 3): where the highlight is."""
+    with torch.no_grad():
+        return lobe_luminance(maps, lights, fov, convention, extent)
+
+
+def lobe_luminance(maps: torch.Tensor, lights: torch.Tensor, fov: float, convention: str,
+                   extent: float = 1.0) -> torch.Tensor:
+    """``specular_lobe`` with its gradient: the luminance (B, 1, H, W) of the maps' (B, 10, H, W)
+    specular lobe alone under the flashes at ``lights`` (B, 3), rendered in float32."""
     from ..render import render_flash
 
-    specular_only = maps.clone()
-    specular_only[:, constants.DIFFUSE] = 0.0
-    with torch.no_grad():
-        rgb = render_flash(specular_only, lights.view(-1, 1, 3), fov=fov, convention=convention, extent=extent)[:, 0]
+    specular_only = torch.cat([maps[:, constants.NORMAL], torch.zeros_like(maps[:, constants.DIFFUSE]),
+                               maps[:, constants.DIFFUSE.stop:]], dim=1).float()
+    with torch.autocast(maps.device.type, enabled=False):
+        rgb = render_flash(specular_only, lights.view(-1, 1, 3).float(), fov=fov, convention=convention,
+                           extent=extent)[:, 0]
     return sum(weight * rgb[:, channel] for channel, weight in enumerate(constants.LUMINANCE_WEIGHTS))[:, None]
+
+
+#: Floor of the lobe loss's logs (``lobe_loss``) as a share of the true photo's peak (the
+#: ``HIGHLIGHT_PEAK_QUANTILE`` of the truth rendered whole): a lobe fainter than this hardly shows.
+LOBE_FLOOR = 0.01
+
+
+def lobe_loss(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, fov: float, convention: str,
+              extent: float = 1.0) -> torch.Tensor:
+    """How far the predicted maps' specular lobe is from the truth's where the photo shows it:
+    the mean over the pixels of |log(f + lobe(predicted)) - log(f + lobe(truth))| times how much
+    of either lobe the pixel shows (the larger of the two over the photo's peak, at most 1), so
+    that a lobe that covers few pixels or hardly shows costs little. The lobes are rendered alone
+    under the photo's flashes at ``lights`` (B, 3) (``lobe_luminance``); the photo's peak is the
+    ``HIGHLIGHT_PEAK_QUANTILE`` of the truth rendered whole, and f = ``LOBE_FLOOR`` times it.
+    Maps (B, 10, H, W).
+
+    In one flash photo the diffuse makes up what the lobe misses of the highlight (a weak lobe
+    leaves a blob, a strong one a hole: ``benchmarks/highlight_leak.py``); this is the lobe's
+    miss itself, in ratios: a lobe ten times too faint costs log 10 where the true lobe shows (one
+    ten times too bright as much, and more where it shows beyond the true one).
+    """
+    from ..render import render_flash
+
+    with torch.no_grad(), torch.autocast(truth.device.type, enabled=False):
+        true_lobe = lobe_luminance(truth, lights, fov, convention, extent)
+        photo = render_flash(truth.float(), lights.view(-1, 1, 3).float(), fov=fov, convention=convention,
+                             extent=extent)[:, 0]
+        photo = sum(weight * photo[:, channel] for channel, weight in enumerate(constants.LUMINANCE_WEIGHTS))
+        peak = torch.quantile(photo.flatten(1), HIGHLIGHT_PEAK_QUANTILE, dim=1).view(-1, 1, 1, 1).clamp_min(1e-6)
+    predicted_lobe = lobe_luminance(predicted, lights, fov, convention, extent).clamp_min(0.0)
+    floor = LOBE_FLOOR * peak
+    miss = (torch.log(floor + predicted_lobe) - torch.log(floor + true_lobe)).abs()
+    weights = (torch.maximum(true_lobe, predicted_lobe.detach()) / peak).clamp(max=1.0)
+    return (miss * weights).mean()
 
 
 #: The lobe's brightness that weighs fully in ``highlight_weights``: its 99th percentile.

@@ -24,7 +24,7 @@ from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, local_unit
 from .config import LOCAL_UNIT_FIELDS, RESUMABLE_CHANGES, TrainConfig
 from .data import (LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials,
                    shifted_lobes)
-from .losses import (highlight_weights, learning_rate_factor, normal_unit_loss, normals_over_flat, rendering_loss,
+from .losses import (highlight_weights, learning_rate_factor, lobe_loss, normal_unit_loss, normals_over_flat, rendering_loss,
                      sample_render_geometry, saturation_penalty, supervised_loss, variation_consistency_loss)
 
 
@@ -280,14 +280,20 @@ class Trainer:
                                   diffuse_encoded=config.diffuse_loss_encoded)
             vc = torch.zeros((), device=self.device)
         saturation = saturation_penalty(output.extras["decoder_raw"].float())
+        predicted = (original if use_vc else output).maps
         anchored = self._anchor_loss(original if use_vc else output, batch)
+        lobe = torch.zeros((), device=self.device)
+        if config.lobe_weight:
+            lobe = lobe_loss(predicted, target, batch.lights.to(self.device), batch.fov, config.network.convention,
+                             config.network.plane_extent)
         loss, losses = self._with_rendering_loss(sup + config.vc_weight * vc + config.saturation_weight * saturation
-                                                 + config.anchor_weight * anchored,
-                                                 (original if use_vc else output).maps, target)
+                                                 + config.anchor_weight * anchored + config.lobe_weight * lobe,
+                                                 predicted, target)
         norm = self._optimise(loss)
         anchor_log = {"l_anchor": anchored.item()} if self.anchor is not None else {}
+        lobe_log = {"l_lobe": lobe.item()} if config.lobe_weight else {}
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
-                **anchor_log, **losses, "grad_norm": norm.item()}
+                **anchor_log, **lobe_log, **losses, "grad_norm": norm.item()}
 
     def _anchor_loss(self, output: DeepBasisOutput, batch: TrainingBatch) -> torch.Tensor:
         """The supervised L1 between ``output`` (of ``batch.inputs``) and the anchor's maps of the

@@ -163,3 +163,84 @@ def test_the_encoded_diffuse_loss_compares_srgb_albedos():
     expected = (diffuse + 2 * 0.1) / 40
     encoded = supervised_loss(output, truth, diffuse_encoded=True)
     assert float(encoded) == pytest.approx(float(expected), rel=1e-5)
+
+
+def glossy_flat_maps(size: int = 33, specular: float = 0.04, roughness: float = 0.15) -> torch.Tensor:
+    """(1, 10, size, size) a flat, uniform, glossy material."""
+    maps = torch.zeros(1, 10, size, size)
+    maps[:, 2] = 1.0
+    maps[:, 3:6] = 0.2
+    maps[:, 6] = roughness
+    maps[:, 7:] = specular
+    return maps
+
+
+def test_the_lobe_loss_against_the_reference_renderer(restore_render_backend):
+    """The lobe loss written out with the reference renderer: the lobes alone, the floor at 1 % of
+    the true photo's 99th percentile, the pixels weighed by the larger lobe over that peak."""
+    from mideepbasis import geometry
+    from mideepbasis.render import reference, set_render_backend
+    from mideepbasis.train.losses import lobe_loss
+
+    truth = glossy_flat_maps()
+    predicted = glossy_flat_maps(specular=0.02, roughness=0.3)
+    predicted[:, 3:6] = 0.7  # the diffuse does not count
+    lights = torch.tensor([[0.1, -0.05, 2.0]])
+    intensity = geometry.flash_intensity(45.0, "physical")
+
+    def luminance(maps):
+        rgb = reference.render_flash(maps.double(), lights.view(1, 1, 3).double(), intensity, "physical")[0, 0]
+        return 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]
+
+    def lobe(maps):
+        alone = maps.clone()
+        alone[:, 3:6] = 0.0
+        return luminance(alone)
+
+    true_lobe, predicted_lobe = lobe(truth), lobe(predicted)
+    peak = torch.quantile(luminance(truth).flatten(), 0.99)
+    floor = 0.01 * peak
+    miss = (torch.log(floor + predicted_lobe) - torch.log(floor + true_lobe)).abs()
+    weights = (torch.maximum(true_lobe, predicted_lobe) / peak).clamp(max=1.0)
+    expected = float((miss * weights).mean())
+    assert expected > 0.01  # a lobe twice as rough and half as bright
+    for backend, tolerance in (("torch", 1e-4), ("mitsuba", 1e-3)):
+        set_render_backend(backend)
+        assert lobe_loss(truth, truth, lights, 45.0, "physical").item() == pytest.approx(0.0, abs=1e-6)
+        assert lobe_loss(predicted, truth, lights, 45.0, "physical").item() == pytest.approx(expected, rel=tolerance)
+
+
+def test_the_lobe_loss_grows_with_the_log_of_the_miss_and_pulls_the_roughness():
+    from mideepbasis.train.losses import lobe_loss
+
+    lights = torch.tensor([[0.0, 0.0, 2.0]])
+    truth = glossy_flat_maps(specular=0.03)
+    faint, bright = ({factor: lobe_loss(glossy_flat_maps(specular=0.03 * factor**sign), truth, lights, 45.0,
+                                        "physical").item() for factor in (4, 30)} for sign in (-1, 1))
+    # A faint lobe weighs where the true one shows: the log of the miss where it is well above the
+    # floor (less in its tails). A bright one shows on more pixels and costs more.
+    assert faint[30] / faint[4] == pytest.approx(math.log(30) / math.log(4), rel=0.15)
+    assert faint[4] < bright[4] and faint[30] < bright[30]
+    # A lobe too rough is pulled smoother.
+    rough = glossy_flat_maps(roughness=0.4).requires_grad_(True)
+    lobe_loss(rough, truth, lights, 45.0, "physical").backward()
+    assert rough.grad[:, 6].sum() > 0
+    # Against a matte truth a faint lobe costs little, measured against the photo's own brightness.
+    matte = glossy_flat_maps(specular=0.0, roughness=0.8)
+    faint, strong = (lobe_loss(glossy_flat_maps(specular=specular, roughness=0.8), matte, lights, 45.0,
+                               "physical").item() for specular in (0.01, 0.5))
+    assert faint < 0.2 * strong
+
+
+def test_a_run_with_the_lobe_loss_logs_it(tmp_path):
+    import json
+
+    from tests.train.helpers import tiny_config
+    from mideepbasis.train import Trainer
+
+    Trainer(tiny_config(tmp_path, steps=2, lobe_weight=0.5), progress=False).run()
+    records = [json.loads(line) for line in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
+    logged = [record for record in records if "l_lobe" in record]
+    assert logged and all(record["l_lobe"] >= 0 for record in logged)
+    with pytest.raises(ValueError, match="lobe_weight"):
+        tiny_config(tmp_path, lobe_weight=-1.0)
