@@ -219,7 +219,8 @@ def summary(figures: dict) -> dict:
         result["largest_clipped_share"] = float(values["clipped_share"].max())
     if "leak" in values:
         result.update({"mean_leak": float(values["leak"].mean()),
-                       "mean_abs_true_imprint": float(np.abs(values["true_imprint"]).mean())})
+                       "mean_abs_true_imprint": float(np.abs(values["true_imprint"]).mean()),
+                       "mean_lobe_log_ratio": float(values["lobe_log_ratio"].mean())})
     return result
 
 
@@ -265,7 +266,8 @@ def main() -> None:
         report["phone_scenes"] = {**summary(scenes), "leak_by": leak_by_darkness(scenes), "per_scene": scenes}
         print(f"phone scenes ({len(scenes)}): mean |imprint| {report['phone_scenes']['mean_abs_imprint']:.4f} (truth's "
               f"{report['phone_scenes']['mean_abs_true_imprint']:.4f}), leak {report['phone_scenes']['mean_leak']:+.4f}, "
-              f"specular tint {report['phone_scenes']['mean_specular_tint']:.4f}")
+              f"specular tint {report['phone_scenes']['mean_specular_tint']:.4f}, the captured lobe's log ratio to "
+              f"the true one under the highlight {report['phone_scenes']['mean_lobe_log_ratio']:+.2f}")
         print(error_map_line(report["phone_scenes"]))
         by = report["phone_scenes"]["leak_by"]
         print("  leak by the true diffuse's brightness, darkest third first: "
