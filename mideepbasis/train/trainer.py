@@ -280,8 +280,9 @@ class Trainer:
                                   diffuse_encoded=config.diffuse_loss_encoded)
             vc = torch.zeros((), device=self.device)
         saturation = saturation_penalty(output.extras["decoder_raw"].float())
-        predicted = (original if use_vc else output).maps
-        anchored = self._anchor_loss(original if use_vc else output, batch)
+        taken = original if use_vc else output  # the answer to the photos as taken
+        predicted = taken.maps
+        anchored = self._anchor_loss(taken, batch)
         lobe = torch.zeros((), device=self.device)
         if config.lobe_weight:
             lobe = lobe_loss(predicted, target, batch.lights.to(self.device), batch.fov, config.network.convention,
