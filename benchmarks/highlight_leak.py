@@ -53,14 +53,10 @@ from mideepbasis.material import Material
 from mideepbasis.model.checkpoint import load_model
 from mideepbasis.render.api import example_capture_dir
 from mideepbasis.resampling import downsample_maps
+from mideepbasis.train.losses import rgb_luminance as luminance
 
 #: Share of the pixels, the brightest of the specular lobe's render, that make the highlight region.
 HIGHLIGHT_SHARE = 0.05
-
-
-def luminance(rgb: torch.Tensor) -> torch.Tensor:
-    """(B, 3, H, W) -> (B, H, W), Rec. 709 weights."""
-    return sum(weight * rgb[:, channel] for channel, weight in enumerate(constants.LUMINANCE_WEIGHTS))
 
 
 def highlight_leak(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, fov: float,

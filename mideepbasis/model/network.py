@@ -48,6 +48,7 @@ LOG_RATIO_LIMIT = 4.0
 #: Linear photo values at or above this are clipped: a render above one tells nothing there.
 PHOTO_CLIPPED = 0.98
 
+
 @dataclass(frozen=True)
 class NetworkConfig:
     """Sizes and switches of DeepBasisNet."""

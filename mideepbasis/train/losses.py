@@ -34,7 +34,12 @@ def lobe_luminance(maps: torch.Tensor, lights: torch.Tensor, fov: float, convent
     with torch.autocast(maps.device.type, enabled=False):
         rgb = render_flash(specular_only, lights.view(-1, 1, 3).float(), fov=fov, convention=convention,
                            extent=extent)[:, 0]
-    return sum(weight * rgb[:, channel] for channel, weight in enumerate(constants.LUMINANCE_WEIGHTS))[:, None]
+    return rgb_luminance(rgb)[:, None]
+
+
+def rgb_luminance(rgb: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) linear RGB -> (B, H, W) luminance (``constants.LUMINANCE_WEIGHTS``)."""
+    return sum(weight * rgb[:, channel] for channel, weight in enumerate(constants.LUMINANCE_WEIGHTS))
 
 
 #: Floor of the lobe loss's logs (``lobe_loss``) as a share of the true photo's peak (the
@@ -61,9 +66,8 @@ def lobe_loss(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor
 
     with torch.no_grad(), torch.autocast(truth.device.type, enabled=False):
         true_lobe = lobe_luminance(truth, lights, fov, convention, extent)
-        photo = render_flash(truth.float(), lights.view(-1, 1, 3).float(), fov=fov, convention=convention,
-                             extent=extent)[:, 0]
-        photo = sum(weight * photo[:, channel] for channel, weight in enumerate(constants.LUMINANCE_WEIGHTS))
+        photo = rgb_luminance(render_flash(truth.float(), lights.view(-1, 1, 3).float(), fov=fov,
+                                           convention=convention, extent=extent)[:, 0])
         peak = torch.quantile(photo.flatten(1), HIGHLIGHT_PEAK_QUANTILE, dim=1).view(-1, 1, 1, 1).clamp_min(1e-6)
     predicted_lobe = lobe_luminance(predicted, lights, fov, convention, extent).clamp_min(0.0)
     floor = LOBE_FLOOR * peak
