@@ -339,6 +339,14 @@ def _fields(values: dict | None) -> dict:
 LOCAL_UNIT_FIELDS = ("local_width", "local_encoder_blocks", "local_middle_blocks", "local_decoder_blocks",
                      "local_ending_kernel")
 
+#: NetworkConfig fields of the normal unit's size: ``--init`` from a network with another normal unit
+#: loads everything else; the unit starts afresh, unless it only gained blocks (``Trainer``).
+NORMAL_UNIT_FIELDS = ("normal_unit_width", "normal_unit_blocks", "normal_unit_middle_blocks")
+
+#: NetworkConfig fields that change how the network runs but none of its weights: ``--init`` may
+#: change them freely.
+WEIGHTLESS_FIELDS = ("normal_unit_octaves", "normal_slope_scaled", "error_map")
+
 #: Parts of DeepBasisNet (its top-level modules) that ``train_only`` may name.
 TRAINABLE_PARTS = ("encoder", "weight_decoder", "global_unit", "local_unit", "normal_unit")
 

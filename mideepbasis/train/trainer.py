@@ -21,7 +21,7 @@ from ..data.synth import PHONE_LEVERS, SynthesisConfig, TrainingBatch, Variation
 from ..errors import InputError, MideepbasisError
 from ..model.checkpoint import CheckpointError, non_finite_tensors, previous_path, read_checkpoint, save_checkpoint
 from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, local_unit_inputs, to_maps, to_signed
-from .config import LOCAL_UNIT_FIELDS, RESUMABLE_CHANGES, TrainConfig
+from .config import LOCAL_UNIT_FIELDS, NORMAL_UNIT_FIELDS, RESUMABLE_CHANGES, WEIGHTLESS_FIELDS, TrainConfig
 from .data import (LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials,
                    shifted_lobes)
 from .losses import (highlight_weights, learning_rate_factor, lobe_loss, normal_unit_loss, normals_over_flat, rendering_loss,
@@ -151,8 +151,8 @@ class Trainer:
         normal units (a unit whose size differs, or that the checkpoint lacks, starts afresh;
         everything else is loaded), except that a normal unit of the same width and levels with more
         blocks keeps the checkpoint's blocks, the added ones starting as the identity. How the
-        normal unit runs (``normal_unit_octaves``, ``normal_slope_scaled``) and the local unit's
-        error map (``error_map``) may differ too: they need no weights."""
+        network runs (``WEIGHTLESS_FIELDS``: the normal unit's octaves and slope scaling, the local
+        unit's error map) may differ too: it needs no weights."""
         from dataclasses import replace
 
         from ..model.checkpoint import load_model
@@ -160,11 +160,8 @@ class Trainer:
         source = load_model(path)
         config = self.model.config
         local_fields = {name: getattr(config, name) for name in LOCAL_UNIT_FIELDS}
-        if replace(source.config, extra_inputs=config.extra_inputs, normal_unit_width=config.normal_unit_width,
-                   normal_unit_blocks=config.normal_unit_blocks,
-                   normal_unit_middle_blocks=config.normal_unit_middle_blocks,
-                   normal_unit_octaves=config.normal_unit_octaves, normal_slope_scaled=config.normal_slope_scaled,
-                   error_map=config.error_map, **local_fields) != config:
+        free = {name: getattr(config, name) for name in ("extra_inputs",) + NORMAL_UNIT_FIELDS + WEIGHTLESS_FIELDS}
+        if replace(source.config, **free, **local_fields) != config:
             raise InputError(f"{path}: its network configuration differs from this run's ({self.config.preset} "
                              "preset) in more than the optional inputs and the sizes of the local and normal units")
         state, target = source.state_dict(), self.model.state_dict()
