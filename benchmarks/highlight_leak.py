@@ -60,13 +60,17 @@ HIGHLIGHT_SHARE = 0.05
 
 
 def highlight_leak(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor, fov: float,
-                   convention: str, extent: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   convention: str, extent: float = 1.0, true_lobe: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-material leak (B,) of predicted maps into their diffuse under the flash at ``lights``
     (B, 3), relative and in albedo units (NaN where the lobe marks no region: a material without
-    specular), and the highlight regions (B, H, W) bool. Maps (B, 10, H, W)."""
+    specular), and the highlight regions (B, H, W) bool. Maps (B, 10, H, W); ``true_lobe``
+    (B, 1, H, W): the truth's ``specular_lobe`` under ``lights`` where the caller has rendered it."""
     from mideepbasis.train import specular_lobe
 
-    lobe = specular_lobe(truth, lights, fov, convention, extent)[:, 0]
+    if true_lobe is None:
+        true_lobe = specular_lobe(truth, lights, fov, convention, extent)
+    lobe = true_lobe[:, 0]
     threshold = torch.quantile(lobe.flatten(1), 1.0 - HIGHLIGHT_SHARE, dim=1).view(-1, 1, 1)
     region = lobe >= threshold
     excess = luminance(predicted[:, constants.DIFFUSE]) - luminance(truth[:, constants.DIFFUSE])
@@ -160,9 +164,11 @@ def phone_scenes(capturer, folder: Path, convention: str, light_known: bool = Fa
         result = capturer.with_config(fov=scene.fov(0), light=light).capture(scene.photos[0])
         maps = result.material.to_tensor()
         truth = true_maps(scene, maps.shape[-1])
-        leak, albedo_leak, region = highlight_leak(maps[None], truth[None], scene.lights[:1], scene.fov(0), convention)
         lobes = specular_lobe(torch.stack([maps, truth]), scene.lights[:1].float().expand(2, 3), scene.fov(0),
-                              convention)[:, 0]
+                              convention)
+        leak, albedo_leak, region = highlight_leak(maps[None], truth[None], scene.lights[:1], scene.fov(0), convention,
+                                                   true_lobe=lobes[1:])
+        lobes = lobes[:, 0]
         figures[scene.name] = {"imprint": imprint(maps[constants.DIFFUSE], result.light_position, result.fov,
                                                   convention),
                                "true_imprint": imprint(truth[constants.DIFFUSE], result.light_position, result.fov,
