@@ -30,6 +30,11 @@ fine tilt [deg] (the normals' energy above the band as an RMS angle) shows relie
 ``--visibility`` measures instead how much of the truth's fine relief the photo shows at all
 (``shading_visibility``): no capture, entry ``detail_visibility``.
 
+``--registration DIR`` measures instead how much of a calibrated real scene's fine detail (its
+photo 00's contrast above the band) the other photos show where it is (``registration``): the
+real protocol at full resolution can credit a detail step only with that. No capture, entry
+``detail_registration``.
+
 Writes the figures as the entry ``detail`` of results/model_quality.json and the contact sheet (``--sheet``; ``--no-sheet`` skips it): for two
 relief materials and one flat textured one, the centre half of the sample (512 px at 1024): the
 photo, the true, upsampled and detailed diffuse, the true, upsampled and detailed normal.
@@ -249,6 +254,56 @@ def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, conventio
     return {"size": args.size, "band": args.band, "seed": args.seed, "mean": means, "per_material": rows}
 
 
+def registration(folder: Path, band: int) -> list[dict]:
+    """Photo 00 of the calibrated scene in ``folder`` against each other photo, at the photos' own
+    size: the correlation of their luminance contrast above ``band`` px (``above_band`` over the
+    band's mean) at zero shift, and at the whole-pixel shift (dy, dx) [pixels, rows down and
+    columns right, within 8] by which the other photo's detail lies from photo 00's, where it
+    peaks; over the centre half of the photo."""
+    from mideepbasis.capturing.photo import load_photo
+    from mideepbasis.evaluation.real import load_scene
+
+    scene = load_scene(folder)
+
+    def fine_contrast(index: int) -> torch.Tensor:
+        photo = load_photo(scene.photos[index], fov=scene.fov(index), resolution="native")[0].mean(dim=0)[None, None]
+        low = photo - above_band(photo, band)
+        contrast = (above_band(photo, band) / low.clamp(min=1e-3))[0, 0]
+        side = contrast.shape[-1]
+        return contrast[side // 4:side - side // 4, side // 4:side - side // 4]
+
+    def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
+        a, b = a - a.mean(), b - b.mean()
+        return float((a * b).mean() / (a.std() * b.std()).clamp(min=1e-12))
+
+    reach, reference, rows = 8, fine_contrast(0), []
+    inner = reference[reach:-reach, reach:-reach]
+    for index in range(1, len(scene.photos)):
+        other = fine_contrast(index)
+        shifted = {(dy, dx): correlation(inner, other[reach + dy:other.shape[0] - reach + dy,
+                                                       reach + dx:other.shape[1] - reach + dx])
+                   for dy in range(-reach, reach + 1) for dx in range(-reach, reach + 1)}
+        (dy, dx), peak = max(shifted.items(), key=lambda item: item[1])
+        rows.append({"photo": index, "correlation": shifted[(0, 0)], "peak_correlation": peak, "shift": [dy, dx]})
+    return rows
+
+
+def registration_report(folder: Path, band: int) -> dict:
+    """``registration`` of each scene under ``folder``, printed."""
+    from mideepbasis.evaluation.real import scene_folders
+
+    scenes = {}
+    for scene_folder in scene_folders(folder):
+        rows = registration(scene_folder, band)
+        scenes[scene_folder.name] = rows
+        for row in rows:
+            print(f"{scene_folder.name} photo {row['photo']:02d}: fine contrast's correlation with photo 00 "
+                  f"{row['correlation']:+.3f}, at its peak {row['peak_correlation']:+.3f}, shift {row['shift']} px")
+        print(f"{scene_folder.name}: mean correlation {np.mean([r['correlation'] for r in rows]):+.3f}, "
+              f"photos off by a pixel or more {sum(r['shift'] != [0, 0] for r in rows)} of {len(rows)}")
+    return {"data": str(folder), "band": band, "scenes": scenes}
+
+
 def number(value: float | None) -> str:
     """A detail ratio for the printed tables ("-": no true detail)."""
     return "   -  " if value is None else f"{value:6.3f}"
@@ -288,7 +343,14 @@ def main() -> None:
     parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
+    parser.add_argument("--registration", type=Path, default=None, metavar="DIR",
+                        help="only measure how the fine detail of the calibrated scenes in DIR lines up across their "
+                             "photos (registration)")
     args = parser.parse_args()
+    if args.registration is not None:
+        write_section(args.output, "detail_registration", "detail --registration",
+                      registration_report(args.registration, args.band))
+        return
 
     model = load_model(args.model)
     fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
