@@ -18,7 +18,7 @@ The real photos' highlight imprint (issue 43), the whole network from the shippe
 control and three levers within the device tool's limits:
 
     python3 scripts/device_train.py --variants phone_no_falloff_highlight16_local phone_dark_glossy_local \
-        phone_dark_glossy_lobe_local phone_dark_glossy_lobe_ratio_local \
+        phone_dark_glossy_lobe_local phone_dark_glossy_lobe_global_local \
         --init mideepbasis/models/deepbasis_compact.safetensors --minutes 7 --lr 5e-5 --local-lr 5e-5 --final-only --out $OUT
 
 The script imports the package itself: run it with the repository root on ``PYTHONPATH``.
@@ -145,6 +145,11 @@ VARIANTS = {
     "phone_dark_glossy_lobe_ratio_local": [*PHONE_NO_FALLOFF, "--highlight-weight", "16", *DARK_GLOSSY,
                                            "--lobe-weight", "2", "--network-error-map", "log_ratio",
                                            "--train-only", "encoder,weight_decoder,global_unit,local_unit"],
+    # The same with the global blend alone held to the truth's reflectance: the global bases a
+    # material, the local unit's error map what they miss.
+    "phone_dark_glossy_lobe_global_local": [*PHONE_NO_FALLOFF, "--highlight-weight", "16", *DARK_GLOSSY,
+                                            "--lobe-weight", "2", "--global-weight", "0.5",
+                                            "--train-only", "encoder,weight_decoder,global_unit,local_unit"],
 }
 
 COMMON = ["--preset", "compact", "--data", "procedural", "--render-backend", "torch", "--bf16",

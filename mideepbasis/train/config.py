@@ -209,6 +209,12 @@ class TrainConfig:
     so the diffuse takes up the lobe's miss (the leak follows it); the map losses hardly see a
     lobe ten times too faint, a small roughness error. 0: off."""
 
+    global_weight: float = 0.0
+    """Weight of the global blend's loss (the whole network's step; ``losses.global_blend_loss``):
+    the blending weights times the global bases alone, without the local deviations, against the
+    truth's reflectance, so that the global bases are a material of their own, the local unit's
+    error map measures what they miss, and the refinement moves a material. 0: off."""
+
     diffuse_loss_encoded: bool = False
     """Compare the diffuse map in the supervised loss as sRGB-encoded albedo rather than linear
     (its pixels still weighed by ``highlight_weight``): a blob in the diffuse is seen against the
@@ -283,6 +289,10 @@ class TrainConfig:
             raise ValueError(f"lobe_weight {self.lobe_weight} must be 0 (off) or positive")
         if self.lobe_weight and (self.local_pool or self.normal_pool):
             raise ValueError("lobe_weight weighs the whole network's step: the unit pools do not take it")
+        if self.global_weight < 0:
+            raise ValueError(f"global_weight {self.global_weight} must be 0 (off) or positive")
+        if self.global_weight and (self.local_pool or self.normal_pool):
+            raise ValueError("global_weight weighs the whole network's step: the unit pools do not take it")
         if (self.global_roughness_jitter or self.global_specular_jitter) and not self.local_pool:
             raise ValueError("global_roughness_jitter and global_specular_jitter change what the local pool gives "
                              "the local unit: they need local_pool")

@@ -1,7 +1,7 @@
 """The losses of training and what they need: the supervised and variation-consistency losses,
 the decoder's saturation penalty, the re-rendering loss and its random lights and views, the
-highlight weights of the diffuse loss, the specular lobe's loss, the normal pool's loss, and the
-learning-rate schedule."""
+highlight weights of the diffuse loss, the specular lobe's loss, the global blend's loss, the
+normal pool's loss, and the learning-rate schedule."""
 
 from __future__ import annotations
 
@@ -74,6 +74,20 @@ def lobe_loss(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor
     miss = (torch.log(floor + predicted_lobe) - torch.log(floor + true_lobe)).abs()
     weights = (torch.maximum(true_lobe, predicted_lobe.detach()) / peak).clamp(max=1.0)
     return (miss * weights).mean()
+
+
+def global_blend_loss(output: DeepBasisOutput, maps: torch.Tensor) -> torch.Tensor:
+    """L1 in signed space between the global blend alone (each pixel's blending weights times the
+    global bases, no local deviations) and the truth ``maps`` (B, 10, H, W), over the reflectance
+    channels (the relief is the local unit's and the normal unit's).
+
+    The local unit reads the render of this blend against the photo (``DeepBasisNet.error_map``)
+    and the refinement moves the global bases. Trained on the final maps alone, the shipped
+    network's global blend is not the material: on procedural photos its diffuse and specular
+    are 2 - 3 times the truth's, and the local deviations pull each pixel back."""
+    weights, bases = output.weights, output.global_bases
+    blend = (weights[:, :, None, :, :] * bases[:, :, constants.REFLECTANCE, None, None]).sum(dim=1)
+    return (blend - to_signed(maps)[:, constants.REFLECTANCE]).abs().mean()
 
 
 #: The lobe's brightness that weighs fully in ``highlight_weights``: its 99th percentile.

@@ -24,8 +24,9 @@ from ..model.network import DeepBasisNet, DeepBasisOutput, add_slope, local_unit
 from .config import LOCAL_UNIT_FIELDS, NORMAL_UNIT_FIELDS, RESUMABLE_CHANGES, WEIGHTLESS_FIELDS, TrainConfig
 from .data import (LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials,
                    shifted_lobes)
-from .losses import (highlight_weights, learning_rate_factor, lobe_loss, normal_unit_loss, normals_over_flat, rendering_loss,
-                     sample_render_geometry, saturation_penalty, supervised_loss, variation_consistency_loss)
+from .losses import (global_blend_loss, highlight_weights, learning_rate_factor, lobe_loss, normal_unit_loss,
+                     normals_over_flat, rendering_loss, sample_render_geometry, saturation_penalty, supervised_loss,
+                     variation_consistency_loss)
 
 
 class TrainingDiverged(MideepbasisError):
@@ -284,14 +285,16 @@ class Trainer:
         if config.lobe_weight:
             lobe = lobe_loss(predicted, target, batch.lights.to(self.device), batch.fov, config.network.convention,
                              config.network.plane_extent)
+        blend = global_blend_loss(taken, target) if config.global_weight else torch.zeros((), device=self.device)
         loss, losses = self._with_rendering_loss(sup + config.vc_weight * vc + config.saturation_weight * saturation
-                                                 + config.anchor_weight * anchored + config.lobe_weight * lobe,
-                                                 predicted, target)
+                                                 + config.anchor_weight * anchored + config.lobe_weight * lobe
+                                                 + config.global_weight * blend, predicted, target)
         norm = self._optimise(loss)
         anchor_log = {"l_anchor": anchored.item()} if self.anchor is not None else {}
         lobe_log = {"l_lobe": lobe.item()} if config.lobe_weight else {}
+        blend_log = {"l_global": blend.item()} if config.global_weight else {}
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
-                **anchor_log, **lobe_log, **losses, "grad_norm": norm.item()}
+                **anchor_log, **lobe_log, **blend_log, **losses, "grad_norm": norm.item()}
 
     def _anchor_loss(self, output: DeepBasisOutput, batch: TrainingBatch) -> torch.Tensor:
         """The supervised L1 between ``output`` (of ``batch.inputs``) and the anchor's maps of the

@@ -244,3 +244,48 @@ def test_a_run_with_the_lobe_loss_logs_it(tmp_path):
     assert logged and all(record["l_lobe"] >= 0 for record in logged)
     with pytest.raises(ValueError, match="lobe_weight"):
         tiny_config(tmp_path, lobe_weight=-1.0)
+
+
+def test_the_global_blend_loss_by_hand_sees_the_global_bases_and_not_the_deviations():
+    from mideepbasis.train import global_blend_loss
+
+    generator = torch.Generator().manual_seed(5)
+    weights = torch.rand(2, 3, 4, 4, generator=generator)
+    weights = weights / weights.sum(dim=1, keepdim=True)
+    global_bases = torch.rand(2, 3, 10, generator=generator) * 2 - 1
+    truth = torch.rand(2, 10, 4, 4, generator=generator)  # maps in [0, 1]; the normals do not count
+    expected = 0.0
+    for b in range(2):
+        for y in range(4):
+            for x in range(4):
+                for c in range(3, 10):
+                    blend = sum(float(weights[b, n, y, x]) * float(global_bases[b, n, c]) for n in range(3))
+                    expected += abs(blend - (2 * float(truth[b, c, y, x]) - 1))
+    expected /= 2 * 4 * 4 * 7
+    for deviations in (None, torch.rand(2, 3, 10, 4, 4, generator=generator) - 0.5):
+        output = DeepBasisOutput.from_bases(weights, global_bases, deviations)
+        assert global_blend_loss(output, truth).item() == pytest.approx(expected, rel=1e-5)
+    # Global bases that are the truth's piecewise-constant materials, picked by one-hot weights: zero.
+    picked = torch.zeros(1, 2, 4, 4)
+    picked[:, 0, :, :2], picked[:, 1, :, 2:] = 1.0, 1.0
+    materials = torch.rand(1, 2, 10, generator=generator) * 2 - 1
+    maps = ((picked[:, :, None] * materials[..., None, None]).sum(dim=1) + 1) / 2
+    output = DeepBasisOutput.from_bases(picked, materials, torch.rand(1, 2, 10, 4, 4, generator=generator))
+    assert global_blend_loss(output, maps).item() == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_run_with_the_global_blend_loss_logs_it_and_the_pools_refuse_it(tmp_path):
+    import json
+
+    from tests.train.helpers import local_pool_config, pool_config, tiny_config
+    from mideepbasis.train import Trainer
+
+    Trainer(tiny_config(tmp_path, steps=2, global_weight=0.5), progress=False).run()
+    records = [json.loads(line) for line in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
+    logged = [record for record in records if "l_global" in record]
+    assert logged and all(record["l_global"] > 0 for record in logged)
+    with pytest.raises(ValueError, match="global_weight"):
+        tiny_config(tmp_path, global_weight=-1.0)
+    for pool in (local_pool_config, pool_config):
+        with pytest.raises(ValueError, match="global_weight weighs the whole network's step"):
+            pool(tmp_path, global_weight=0.5)
