@@ -61,10 +61,18 @@ def machine() -> dict:
 
 def write_report(path: Path, name: str, report: dict) -> Path:
     """Write ``report`` (with the benchmark's name, the date, the command line and the machine) as
-    JSON, atomically."""
+    JSON, atomically, keeping the entries other benchmarks wrote into the same file
+    (``write_section``)."""
     document = {"benchmark": name, "date": datetime.datetime.now().isoformat(timespec="seconds"),
                 "command": shlex.join(sys.argv), "machine": machine(), **report}
     path = Path(path)
+    if path.is_file():
+        try:
+            earlier = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            earlier = {}
+        document.update({key: value for key, value in earlier.items()
+                         if key not in document and isinstance(value, dict) and "benchmark" in value})
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_suffix(".json.tmp")
     temporary.write_text(json.dumps(document, indent=2) + "\n")

@@ -7,8 +7,10 @@ model's shading convention and quantised to 8-bit sRGB; the model predicts the m
 (the network at its training resolution, as ``capture`` runs it, unless ``--network-resolution``).
 Reported: map RMSE of normal, diffuse, roughness and specular in the stored encoding, and the RMSE
 of re-renderings under 30 seeded random lights and views per material (clipped, sRGB-encoded),
-for the model and for the trivial baseline (flat normal and the set's mean maps). The paper's
-DeepBasis row (on its 122 scenes) is listed for reference.
+for the model, for its global blend alone (the blending weights times the global bases, without
+the local deviations: what the local unit's error map renders and the refinement moves) and for
+the trivial baseline (flat normal and the set's mean maps). The paper's DeepBasis row (on its 122
+scenes) is listed for reference.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from mideepbasis.capturing import network_resolution_limit, predict
 from mideepbasis.data.datasets import DeschaintreDataset
 from mideepbasis.evaluation import flash_photos, map_rmse, random_lights_and_views, rerender_rmse, trivial_baseline
 from mideepbasis.model.checkpoint import load_model, shipped_model_path
+from mideepbasis.model.network import DeepBasisOutput
 
 PAPER = {"normal": 0.053, "diffuse": 0.031, "roughness": 0.162, "specular": 0.043}
 
@@ -49,17 +52,23 @@ def main() -> None:
     names = [Path(s).stem for s in reader.sources]
     lights, views = random_lights_and_views(seed=0)
     start = time.perf_counter()
-    predictions = []
+    predictions, blends = [], []
     for first in range(0, len(materials), args.batch):
         truth = materials[first:first + args.batch]
         photos, flash = flash_photos(truth, torch.zeros(len(truth), 2), convention=convention)
-        predictions.append(predict(model, photos, flash, network_resolution=args.network_resolution).maps.cpu())
+        output = predict(model, photos, flash, network_resolution=args.network_resolution)
+        predictions.append(output.maps.cpu())
+        if output.weights is not None and output.deviations is not None:
+            blends.append(DeepBasisOutput.from_bases(output.weights, output.global_bases, keep_bases=False).maps.cpu())
     predicted = torch.cat(predictions)
     seconds = time.perf_counter() - start
     baseline = trivial_baseline(materials).expand_as(materials)
 
     rows = {}
-    for name, estimate in (("model", predicted), ("trivial", baseline)):
+    estimates = [("model", predicted), ("trivial", baseline)]
+    if blends:  # what the local unit starts from and the refinement moves
+        estimates.insert(1, ("global blend", torch.cat(blends)))
+    for name, estimate in estimates:
         maps = map_rmse(estimate, materials)
         render = torch.cat([rerender_rmse(estimate[i:i + 6], materials[i:i + 6], lights, views, convention)
                             for i in range(0, len(materials), 6)])
@@ -69,10 +78,10 @@ def main() -> None:
               "prediction_seconds": round(seconds, 1), "rows": rows, "paper_deepbasis_122_scenes": PAPER,
               "per_material_names": names}
     write_report(args.output, "model_quality", report)
-    print(f"{'':10s} {'normal':>8s} {'diffuse':>8s} {'rough':>8s} {'specular':>8s} {'render':>8s}")
+    print(f"{'':12s} {'normal':>8s} {'diffuse':>8s} {'rough':>8s} {'specular':>8s} {'render':>8s}")
     for name, row in rows.items():
-        print(f"{name:10s} " + " ".join(f"{row[k]:8.4f}" for k in ("normal", "diffuse", "roughness", "specular", "render_rmse")))
-    print(f"{'paper':10s} " + " ".join(f"{PAPER[k]:8.4f}" for k in ("normal", "diffuse", "roughness", "specular")))
+        print(f"{name:12s} " + " ".join(f"{row[k]:8.4f}" for k in ("normal", "diffuse", "roughness", "specular", "render_rmse")))
+    print(f"{'paper':12s} " + " ".join(f"{PAPER[k]:8.4f}" for k in ("normal", "diffuse", "roughness", "specular")))
 
 
 if __name__ == "__main__":

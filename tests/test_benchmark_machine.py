@@ -1,4 +1,5 @@
-"""The benchmarks' description of the machine, which tells figures of different CPUs apart."""
+"""The benchmarks' description of the machine, which tells figures of different CPUs apart, and
+their reports' files."""
 
 import importlib.util
 from pathlib import Path
@@ -35,3 +36,15 @@ def test_avx2_machine_lists_no_avx512():
 
 def test_missing_cpuinfo_gives_empty_fields():
     assert common.cpu_description("") == {"cpu_model": None, "cpu_mhz": None, "vector_extensions": []}
+
+
+def test_a_report_keeps_the_entries_other_benchmarks_wrote_into_its_file(tmp_path):
+    import json
+
+    path = tmp_path / "model_quality.json"
+    common.write_report(path, "model_quality", {"rows": {"model": 1}})
+    common.write_section(path, "detail", "detail", {"size": 1024})
+    common.write_report(path, "model_quality", {"rows": {"model": 2}})
+    document = json.loads(path.read_text())
+    assert document["rows"] == {"model": 2} and document["detail"]["size"] == 1024
+    assert not list(tmp_path.glob("*.tmp"))
