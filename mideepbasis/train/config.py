@@ -293,6 +293,8 @@ class TrainConfig:
             raise ValueError(f"global_weight {self.global_weight} must be 0 (off) or positive")
         if self.global_weight and (self.local_pool or self.normal_pool):
             raise ValueError("global_weight weighs the whole network's step: the unit pools do not take it")
+        if self.global_weight and not self.network.use_bases:
+            raise ValueError("global_weight holds the global bases' blend: it needs a network with bases")
         if (self.global_roughness_jitter or self.global_specular_jitter) and not self.local_pool:
             raise ValueError("global_roughness_jitter and global_specular_jitter change what the local pool gives "
                              "the local unit: they need local_pool")

@@ -289,3 +289,5 @@ def test_a_run_with_the_global_blend_loss_logs_it_and_the_pools_refuse_it(tmp_pa
     for pool in (local_pool_config, pool_config):
         with pytest.raises(ValueError, match="global_weight weighs the whole network's step"):
             pool(tmp_path, global_weight=0.5)
+    with pytest.raises(ValueError, match="needs a network with bases"):
+        tiny_config(tmp_path, global_weight=0.5, network={"use_bases": False})
