@@ -330,3 +330,21 @@ def test_batch_workers_die_with_their_parent(tmp_path, tiny_model, how):
     process.wait(timeout=30)
     time.sleep(1.0)
     assert not [pid for pid in spawned if running(pid)]
+
+
+def test_a_probe_left_by_a_killed_process_goes_at_the_next_probe(tmp_path):
+    from mideepbasis.outputs import probe_writable
+
+    out = tmp_path / "out"
+    out.mkdir()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # its pid is free (reaped)
+    stale = out / f".out.mideepbasis-probe-{dead.pid}"
+    stale.write_bytes(b"")
+    alive = out / f".out.mideepbasis-probe-{os.getppid()}"  # a live process's: kept
+    alive.write_bytes(b"")
+    not_a_probe = out / f".out.mideepbasis-probe-{dead.pid}x"
+    not_a_probe.write_bytes(b"")
+    probe_writable(out)
+    assert not stale.exists() and alive.exists() and not_a_probe.exists()
+    assert sorted(p.name for p in out.iterdir()) == sorted([alive.name, not_a_probe.name])
