@@ -12,7 +12,7 @@ import torch
 from .. import constants, geometry
 from ..data.synth import Variation
 from ..imageio import linear_to_srgb
-from ..model.network import DeepBasisOutput, to_signed
+from ..model.network import DeepBasisOutput, blend, to_signed
 
 
 def specular_lobe(maps: torch.Tensor, lights: torch.Tensor, fov: float, convention: str,
@@ -86,9 +86,8 @@ def global_blend_loss(output: DeepBasisOutput, maps: torch.Tensor) -> torch.Tens
     network's global blend is not the material: on the shared 84 its diffuse and specular RMSE
     are 0.36 and 0.29 against the final maps' 0.027 and 0.038 (``benchmarks/model_quality.py``),
     the local deviations pulling every pixel back."""
-    weights, bases = output.weights, output.global_bases
-    blend = (weights[:, :, None, :, :] * bases[:, :, constants.REFLECTANCE, None, None]).sum(dim=1)
-    return (blend - to_signed(maps)[:, constants.REFLECTANCE]).abs().mean()
+    global_blend = blend(output.weights, output.global_bases)[:, constants.REFLECTANCE]
+    return (global_blend - to_signed(maps)[:, constants.REFLECTANCE]).abs().mean()
 
 
 #: The lobe's brightness that weighs fully in ``highlight_weights``: its 99th percentile.
