@@ -267,8 +267,8 @@ def registration(folder: Path, band: int) -> list[dict]:
 
     def fine_contrast(index: int) -> torch.Tensor:
         photo = load_photo(scene.photos[index], fov=scene.fov(index), resolution="native")[0].mean(dim=0)[None, None]
-        low = photo - above_band(photo, band)
-        contrast = (above_band(photo, band) / low.clamp(min=1e-3))[0, 0]
+        fine = above_band(photo, band)
+        contrast = (fine / (photo - fine).clamp(min=1e-3))[0, 0]
         side = contrast.shape[-1]
         return contrast[side // 4:side - side // 4, side // 4:side - side // 4]
 

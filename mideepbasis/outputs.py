@@ -296,9 +296,8 @@ def _alive(pid: int) -> bool:
 def probe_writable(folder: Path) -> None:
     """Refuse, in one line, a folder a file cannot be made in (read-only, immutable, full). The
     probes that processes killed between making and removing theirs left in it go first."""
-    prefix = f".{folder.name}.mideepbasis-probe-"
-    _remove_dead_probes(folder, prefix)
-    probe = folder / f"{prefix}{os.getpid()}"
+    _remove_dead_probes(folder)
+    probe = folder / f".{folder.name}.mideepbasis-probe-{os.getpid()}"
     try:
         probe.write_bytes(b"")
         probe.unlink(missing_ok=True)  # a thread of this process may have taken it first
@@ -306,15 +305,16 @@ def probe_writable(folder: Path) -> None:
         raise InputError(f"cannot write into {folder}: {error.strerror or error}") from None
 
 
-def _remove_dead_probes(folder: Path, prefix: str) -> None:
-    """Delete the empty probe files (``prefix`` + PID) in ``folder`` whose process is gone."""
+def _remove_dead_probes(folder: Path) -> None:
+    """Delete the empty probe files of ``probe_writable`` (``.NAME.mideepbasis-probe-PID``, NAME the
+    folder's) in ``folder`` whose process is gone."""
     try:
         entries = list(os.scandir(folder))
     except OSError:
         return  # the probe itself says why
     for entry in entries:
-        pid = entry.name[len(prefix):]
-        if entry.name.startswith(prefix) and pid.isdigit() and not _alive(int(pid)):
+        match = _BESIDE.match(entry.name)
+        if match and match["kind"] == "probe" and match["name"] == folder.name and not _alive(int(match["pid"])):
             try:
                 if entry.stat(follow_symlinks=False).st_size == 0:
                     os.unlink(entry.path)
