@@ -215,6 +215,12 @@ class TrainConfig:
     truth's reflectance, so that the global bases are a material of their own, the local unit's
     error map measures what they miss, and the refinement moves a material. 0: off."""
 
+    colour_weight: float = 0.0
+    """Weight of the specular colour's loss (the whole network's step;
+    ``losses.specular_colour_loss``): the predicted specular's chromaticity against the truth's, in
+    log ratios of its channels, so that a dark dielectric's tinted specular costs as a bright one's.
+    0: off."""
+
     diffuse_loss_encoded: bool = False
     """Compare the diffuse map in the supervised loss as sRGB-encoded albedo rather than linear
     (its pixels still weighed by ``highlight_weight``): a blob in the diffuse is seen against the
@@ -289,6 +295,10 @@ class TrainConfig:
             raise ValueError(f"lobe_weight {self.lobe_weight} must be 0 (off) or positive")
         if self.lobe_weight and (self.local_pool or self.normal_pool):
             raise ValueError("lobe_weight weighs the whole network's step: the unit pools do not take it")
+        if self.colour_weight < 0:
+            raise ValueError(f"colour_weight {self.colour_weight} must be 0 (off) or positive")
+        if self.colour_weight and (self.local_pool or self.normal_pool):
+            raise ValueError("colour_weight weighs the whole network's step: the unit pools do not take it")
         if self.global_weight < 0:
             raise ValueError(f"global_weight {self.global_weight} must be 0 (off) or positive")
         if self.global_weight and (self.local_pool or self.normal_pool):

@@ -76,6 +76,27 @@ def lobe_loss(predicted: torch.Tensor, truth: torch.Tensor, lights: torch.Tensor
     return (miss * weights).mean()
 
 
+#: Floor of the specular colour loss's logs (``specular_colour_loss``) [linear reflectance]: under
+#: water's F0 (0.02) a channel's ratio to the others hardly shows in a render.
+COLOUR_FLOOR = 0.01
+
+
+def specular_colour_loss(predicted: torch.Tensor, truth: torch.Tensor, floor: float = COLOUR_FLOOR) -> torch.Tensor:
+    """Mean |c(predicted) - c(truth)| over the pixels and channels, with c the log chromaticity of a
+    specular map: log(f + s) minus its mean over the three channels (f = ``floor``). Maps
+    (B, 10, H, W), linear.
+
+    The supervised L1 weighs a tint by its size in reflectance, so on a dark dielectric (F0 about
+    0.04) a specular one channel of which is twice another costs a few hundredths, as little as a
+    small roughness error; in ratios it costs as much as on a bright one. A tinted specular is what
+    a dark real photo's capture shows (``benchmarks/highlight_leak.py``'s tint)."""
+    def chromaticity(maps: torch.Tensor) -> torch.Tensor:
+        logs = torch.log(floor + maps[:, constants.SPECULAR].float().clamp_min(0.0))
+        return logs - logs.mean(dim=1, keepdim=True)
+
+    return (chromaticity(predicted) - chromaticity(truth)).abs().mean()
+
+
 def global_blend_loss(output: DeepBasisOutput, maps: torch.Tensor) -> torch.Tensor:
     """L1 in signed space between the global blend alone (each pixel's blending weights times the
     global bases, no local deviations) and the truth ``maps`` (B, 10, H, W), over the reflectance

@@ -25,8 +25,8 @@ from .config import LOCAL_UNIT_FIELDS, NORMAL_UNIT_FIELDS, RESUMABLE_CHANGES, WE
 from .data import (LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPool, StepBatchSampler, TrainingMaterials,
                    shifted_lobes)
 from .losses import (global_blend_loss, highlight_weights, learning_rate_factor, lobe_loss, normal_unit_loss,
-                     normals_over_flat, rendering_loss, sample_render_geometry, saturation_penalty, supervised_loss,
-                     variation_consistency_loss)
+                     normals_over_flat, rendering_loss, sample_render_geometry, saturation_penalty, specular_colour_loss,
+                     supervised_loss, variation_consistency_loss)
 
 
 class TrainingDiverged(MideepbasisError):
@@ -286,13 +286,16 @@ class Trainer:
             lobe = lobe_loss(predicted, target, batch.lights.to(self.device), batch.fov, config.network.convention,
                              config.network.plane_extent)
         blend = global_blend_loss(taken, target) if config.global_weight else torch.zeros((), device=self.device)
+        colour = specular_colour_loss(predicted, target) if config.colour_weight else torch.zeros((), device=self.device)
         loss, losses = self._with_rendering_loss(sup + config.vc_weight * vc + config.saturation_weight * saturation
                                                  + config.anchor_weight * anchored + config.lobe_weight * lobe
-                                                 + config.global_weight * blend, predicted, target)
+                                                 + config.global_weight * blend + config.colour_weight * colour,
+                                                 predicted, target)
         norm = self._optimise(loss)
         anchor_log = {"l_anchor": anchored.item()} if self.anchor is not None else {}
         lobe_log = {"l_lobe": lobe.item()} if config.lobe_weight else {}
         blend_log = {"l_global": blend.item()} if config.global_weight else {}
+        blend_log |= {"l_colour": colour.item()} if config.colour_weight else {}
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
                 **anchor_log, **lobe_log, **blend_log, **losses, "grad_norm": norm.item()}
 

@@ -291,3 +291,49 @@ def test_a_run_with_the_global_blend_loss_logs_it_and_the_pools_refuse_it(tmp_pa
             pool(tmp_path, global_weight=0.5)
     with pytest.raises(ValueError, match="needs a network with bases"):
         tiny_config(tmp_path, global_weight=0.5, network={"use_bases": False})
+
+
+def test_the_specular_colour_loss_by_hand_sees_ratios_not_levels():
+    from mideepbasis.train import specular_colour_loss
+    from mideepbasis.train.losses import COLOUR_FLOOR
+
+    truth = torch.zeros(1, 10, 1, 2)
+    truth[:, 7:10, 0, 0] = 0.04  # a dark grey dielectric
+    truth[:, 7:10, 0, 1] = torch.tensor([0.9, 0.6, 0.3])  # a gold-like metal
+    # Every pixel's specular scaled: the colour is the same; without the floor the loss is zero.
+    scaled = truth.clone()
+    scaled[:, 7:10] *= 1.7
+    assert specular_colour_loss(scaled, truth, floor=0.0).item() == pytest.approx(0.0, abs=1e-6)
+    # The dark pixel tinted by hand: one channel doubled.
+    tinted = truth.clone()
+    tinted[0, 7, 0, 0] = 0.08
+    logs = [math.log(COLOUR_FLOOR + value) for value in (0.08, 0.04, 0.04)]
+    expected = sum(abs(value - sum(logs) / 3) for value in logs) / 6  # the grey truth's log chromaticity is 0
+    assert specular_colour_loss(tinted, truth).item() == pytest.approx(expected, rel=1e-5)
+    # The same tint in reflectance on a bright grey costs less in ratios than on the dark one.
+    bright = truth.clone()
+    bright[:, 7:10, 0, 0] = 0.5
+    bright_tinted = bright.clone()
+    bright_tinted[0, 7, 0, 0] = 0.54
+    assert specular_colour_loss(bright_tinted, bright).item() < specular_colour_loss(tinted, truth).item() / 5
+    # The diffuse and the roughness do not count.
+    other = truth.clone()
+    other[:, 3:7] = torch.rand(1, 4, 1, 2)
+    assert specular_colour_loss(other, truth).item() == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_run_with_the_specular_colour_loss_logs_it_and_the_pools_refuse_it(tmp_path):
+    import json
+
+    from tests.train.helpers import local_pool_config, pool_config, tiny_config
+    from mideepbasis.train import Trainer
+
+    Trainer(tiny_config(tmp_path, steps=2, colour_weight=0.5), progress=False).run()
+    records = [json.loads(line) for line in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
+    logged = [record for record in records if "l_colour" in record]
+    assert logged and all(record["l_colour"] >= 0 for record in logged)
+    with pytest.raises(ValueError, match="colour_weight"):
+        tiny_config(tmp_path, colour_weight=-1.0)
+    for pool in (local_pool_config, pool_config):
+        with pytest.raises(ValueError, match="colour_weight weighs the whole network's step"):
+            pool(tmp_path, colour_weight=0.5)
