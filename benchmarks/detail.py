@@ -204,6 +204,10 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
                 "correlation": moments["predicted_truth"] / math.sqrt(moments["predicted_predicted"] * moments["truth_truth"])}}
 
 
+#: Radius of the windows of ``window_explained``'s oracle filter [pixels at the capture's size].
+WINDOW_RADIUS = 6
+
+
 def shading_visibility(truth: torch.Tensor, photo: torch.Tensor, light: torch.Tensor, band: int) -> dict:
     """How much of the truth's relief above ``band`` px the photo shows, to first order.
 
@@ -219,7 +223,9 @@ def shading_visibility(truth: torch.Tensor, photo: torch.Tensor, light: torch.Te
     Returns:
         ``correlation`` of c and s, ``slope`` of c on s (1 for a matte surface), ``along_light``
         the fine normal energy's share along the light, ``explained`` = correlation^2 x
-        along_light: the share of the fine normal energy a linear estimate from c could give.
+        along_light: the share of the fine normal energy a linear estimate from c could give
+        pixel by pixel, ``window_explained`` the share the best linear filter of c in windows gives
+        (``window_explained``).
     """
     height, width = photo.shape[-2:]
     luminance = photo.mean(dim=1, keepdim=True)
@@ -232,14 +238,67 @@ def shading_visibility(truth: torch.Tensor, photo: torch.Tensor, light: torch.Te
     shading = (tilt * fine).sum(dim=0)
     along = ((geometry.unit_vectors(tilt, dim=0) * fine).sum(dim=0) ** 2).sum() / (fine**2).sum()
     correlation = float(torch.corrcoef(torch.stack([contrast, shading]))[0, 1])
+    window = window_explained(contrast.view(height, width), tilt.view(2, height, width), fine.view(2, height, width))
     return {"correlation": correlation, "slope": float((contrast * shading).sum() / (shading**2).sum()),
-            "along_light": float(along), "explained": correlation**2 * float(along)}
+            "along_light": float(along), "explained": correlation**2 * float(along), "window_explained": window}
+
+
+def window_explained(contrast: torch.Tensor, tilt: torch.Tensor, fine: torch.Tensor, radius: int = WINDOW_RADIUS,
+                     samples: int = 40_000, seed: int = 0, chunk: int = 8_000) -> float:
+    """The share of the fine normals' energy that the best linear filter of the photo's contrast
+    in (2 radius + 1)^2 windows recovers, fitted with the truth (an oracle: a ceiling, near
+    enough, for any detail step that is linear in the photo).
+
+    The first-order shading is the relief's slope along the light times the light's tilt ``t``, so
+    the filter's taps are the window's contrasts times each pixel's ``t`` (where albedo swamps the
+    shading, the best estimate grows with |t|) and times ``t / |t|^2`` (where shading dominates,
+    the slope is the contrast over |t|). A filter of the contrast along the light integrates it into
+    the height, whose gradient also gives the slope across the light. Fitted by least squares
+    (ridge 1e-6 of the features' energy) on ``samples`` random pixels, scored on as many others.
+
+    Args:
+        contrast: (H, W) the photo's luminance contrast above the band; tilt: (2, H, W) the light's
+            l_xy / l_z; fine: (2, H, W) the true normals above the band.
+
+    Returns:
+        1 - (residual energy) / (fine normal energy) on the scoring pixels: 0 nothing, 1 all.
+    """
+    height, width = contrast.shape
+    generator = torch.Generator().manual_seed(seed)
+    inner = (height - 2 * radius) * (width - 2 * radius)
+    chosen = torch.randperm(inner, generator=generator)[:2 * samples]
+    rows = chosen // (width - 2 * radius) + radius
+    columns = chosen % (width - 2 * radius) + radius
+    inverse = tilt / (tilt**2).sum(dim=0, keepdim=True).clamp(min=1e-2)
+
+    def features(part: torch.Tensor) -> torch.Tensor:
+        r, c = rows[part], columns[part]
+        taps = torch.stack([contrast[r + dy, c + dx] for dy in range(-radius, radius + 1)
+                            for dx in range(-radius, radius + 1)], dim=1)
+        return torch.cat([taps * field[k, r, c, None] for field in (tilt, inverse) for k in range(2)], dim=1).double()
+
+    half = len(chosen) // 2
+    gram, moment = 0.0, 0.0
+    for start in range(0, half, chunk):
+        part = torch.arange(start, min(half, start + chunk))
+        block = features(part)
+        gram = gram + block.T @ block
+        moment = moment + block.T @ fine[:, rows[part], columns[part]].T.double()
+    gram += torch.eye(gram.shape[0], dtype=gram.dtype) * 1e-6 * gram.diagonal().mean()
+    solution = torch.linalg.solve(gram, moment)
+    residual, energy = 0.0, 0.0
+    for start in range(half, len(chosen), chunk):
+        part = torch.arange(start, min(len(chosen), start + chunk))
+        targets = fine[:, rows[part], columns[part]].T.double()
+        residual += float(((targets - features(part) @ solution) ** 2).sum())
+        energy += float((targets**2).sum())
+    return 1.0 - residual / energy
 
 
 def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, convention: str, extent: float) -> dict:
     """``shading_visibility`` of each relief material, printed, and their means."""
     rows = []
-    print(f"{'material':36s} correlation  slope  along light  explained")
+    print(f"{'material':36s} correlation  slope  along light  explained  window")
     for index, material in enumerate(chosen):
         if material["kind"] != "relief":
             continue
@@ -248,9 +307,11 @@ def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, conventio
         row = {**material, "variant": variant, **shading_visibility(truth, photos, lights[0], args.band)}
         rows.append(row)
         print(f"{material['family'] + ' ' + variant:36s} {row['correlation']:11.2f} {row['slope']:6.2f} "
-              f"{row['along_light']:12.2f} {row['explained']:10.3f}", flush=True)
-    means = {key: float(np.mean([row[key] for row in rows])) for key in ("correlation", "along_light", "explained")}
-    print(f"{'mean':36s} {means['correlation']:11.2f} {'':6s} {means['along_light']:12.2f} {means['explained']:10.3f}")
+              f"{row['along_light']:12.2f} {row['explained']:10.3f} {row['window_explained']:7.3f}", flush=True)
+    keys = ("correlation", "along_light", "explained", "window_explained")
+    means = {key: float(np.mean([row[key] for row in rows])) for key in keys}
+    print(f"{'mean':36s} {means['correlation']:11.2f} {'':6s} {means['along_light']:12.2f} {means['explained']:10.3f} "
+          f"{means['window_explained']:7.3f}")
     return {"size": args.size, "band": args.band, "seed": args.seed, "mean": means, "per_material": rows}
 
 
@@ -341,6 +402,8 @@ def main() -> None:
                         help="JSON file whose entry detail gets the figures")
     parser.add_argument("--sheet", type=Path, default=RESULTS / "detail_crops.png")
     parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
+    parser.add_argument("--no-relief-test", action="store_true",
+                        help="capture with the normals' detail not scaled by the photo's relief share (CaptureConfig.relief_test)")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
     parser.add_argument("--registration", type=Path, default=None, metavar="DIR",
@@ -354,7 +417,7 @@ def main() -> None:
 
     model = load_model(args.model)
     fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
-    base = CaptureConfig(fov=fov)
+    base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test)
     if args.refine_steps is not None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
     chosen = materials(args.materials, args.flat)
@@ -393,6 +456,8 @@ def main() -> None:
             seconds = time.perf_counter() - start
             if label == labels[1]:
                 record["network_band"] = network_band_moments(result, truth)
+            if label == labels[2]:
+                record["normal_detail"] = result.material.provenance["capture"]["normal_detail"]
             maps = upsample_maps(result.material.to_tensor()[None], args.size)
             del result
             with torch.no_grad():

@@ -19,6 +19,11 @@ Where the network's map does not follow the photo (a flat normal map on veined m
 roughness) the gain is about zero and nothing is added: relief comes only where the network read
 the photo's shading as relief. The network's answer below its resolution is kept: what is added
 is the photo's band above it. Normals are renormalised, the other maps clipped to [0, 1].
+
+The network can read an albedo's fine texture as relief all the same. So the normals' gains are
+scaled by how much of the photo's fine contrast is shading at all (``relief_share``, a test that
+needs no network: shading's gradients turn with the direction to the flash, an albedo's do not;
+``relief_gain``): a veined marble or a grained wood gets no relief from its texture.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from .. import constants
-from ..geometry import unit_vectors
+from ..geometry import pixel_points, unit_vectors
 from ..resampling import downsample, exact_in_bands, gaussian_blur, upsample_bilinear, upsampled_rows
 
 #: Radius of the windows the gains are fitted in, and averaged over [network pixels].
@@ -70,6 +75,117 @@ GAIN_OF_CHANNEL = (1.0, 1.0, 1.0, DIFFUSE_GAIN, DIFFUSE_GAIN, DIFFUSE_GAIN, 1.0,
 BAND_PIXELS = 1 << 20
 
 
+#: ``relief_share`` at and below which the photo's fine contrast reads as albedo alone, and at
+#: and above which as relief enough for the normals' whole detail (``relief_gain``). On procedural
+#: materials of training seeds at 1024 px (not the benchmark's), flat textured stone and wood read
+#: -0.10 to +0.07 (oriented grain and veins), most relief 0.14 - 0.80.
+RELIEF_SHARE = (0.10, 0.25)
+
+#: Largest side the relief's share is measured at [pixels]: a larger photo is area-averaged to it
+#: first (the shading's direction shows at every scale above the network's band).
+RELIEF_SIZE = 1024
+
+def relief_share(photo: torch.Tensor, light: torch.Tensor, low_size: tuple[int, int], extent: float = 1.0,
+                 matte: torch.Tensor | None = None, max_size: int = RELIEF_SIZE) -> float:
+    """How much of the photo's fine contrast is shading: the part of its gradients' direction
+    that turns with the direction to the flash.
+
+    To first order a matte surface's shading above the network's band is ``t . dn``, ``dn`` the
+    relief's normals there and ``t = l_xy / l_z`` the light's tilt at the pixel. For an isotropic
+    relief the contrast's gradient tensor ``g g^T`` is then, in expectation,
+    ``s |t|^2 (I / 2 + (u u^T - I / 2) / 2)``, ``u`` the unit tilt: its anisotropic part points
+    along the light, which turns around the flash's foot point across the photo. An albedo's
+    texture, veined or grained, has a direction of its own that does not turn with the light. So
+    the gradient tensors are fitted, by least squares over the pixels, as a constant
+    tensor (the albedo) plus ``k |t|^2 (u u^T - I / 2)`` (the shading), and the share is
+    ``2 k mean(|t|^2) / mean(trace)``: about 0 for albedo alone, 1 for relief alone. ``matte``
+    weighs the pixels by the diffuse's share of the photo: a specular highlight falls off along
+    the light too.
+
+    Args:
+        photo: (3, H, W) or (1, 3, H, W) linear; light: (3,) the flash [patch half-widths];
+        low_size: the network's (h, w), whose band is taken out; matte: (h', w') in [0, 1], at
+            any size (upsampled); None: 1.
+
+    Returns:
+        the share (not clipped: noise reads a little below 0 or above 1).
+    """
+    photo = photo.reshape(-1, *photo.shape[-3:])[:1].float()
+    height, width = photo.shape[-2:]
+    scale = max(1, -(-max(height, width) // max_size))
+    if scale > 1:
+        photo = downsample(photo, (height // scale, width // scale))
+        height, width = photo.shape[-2:]
+    luminance = photo.mean(dim=1, keepdim=True)
+    smooth = upsample_bilinear(downsample(luminance, low_size), height, width)
+    contrast = ((luminance - smooth) / smooth.clamp(min=DARKEST))[0, 0]
+    along_x = (contrast[1:-1, 2:] - contrast[1:-1, :-2]) / 2
+    along_y = (contrast[:-2, 1:-1] - contrast[2:, 1:-1]) / 2  # rows run down, y up
+    tensor = torch.stack([along_x**2, along_x * along_y, along_y**2])
+    points = pixel_points(height, width)[:, 1:-1, 1:-1] * extent
+    towards = light.float().view(3, 1, 1) - points
+    tilt = towards[:2] / towards[2:3].clamp(min=1e-6)
+    strength = (tilt**2).sum(dim=0)
+    unit = tilt / strength.sqrt().clamp(min=1e-9)
+    shading = torch.stack([strength * (unit[0]**2 - 0.5), strength * unit[0] * unit[1], strength * (unit[1]**2 - 0.5)])
+    weights = (torch.ones_like(strength) if matte is None
+               else upsample_bilinear(matte.float()[None, None], height, width)[0, 0, 1:-1, 1:-1].clamp(min=0.0))
+    weights = (weights / weights.sum().clamp(min=1e-12)).double()
+    # Weighted least squares of the tensors on a constant plus k times the shading's: the constant
+    # is each component's weighted mean less k times the shading's, and k the ratio of the centred
+    # products' sums; the off-diagonal component counts twice (a tensor's norm).
+    component_weight = torch.tensor([1.0, 2.0, 1.0], dtype=torch.float64).view(3, 1, 1)
+    centred_tensor = tensor.double() - (tensor.double() * weights).sum(dim=(1, 2), keepdim=True)
+    centred_shading = shading.double() - (shading.double() * weights).sum(dim=(1, 2), keepdim=True)
+    k = float((component_weight * weights * centred_tensor * centred_shading).sum()
+              / (component_weight * weights * centred_shading**2).sum().clamp(min=1e-30))
+    mean_trace = float(((tensor[0] + tensor[2]).double() * weights).sum())
+    mean_strength = float((strength.double() * weights).sum())
+    return 2.0 * k * mean_strength / max(mean_trace, 1e-30)
+
+
+def relief_gain(share: float) -> float:
+    """The share of the normals' detail to keep, from ``relief_share``: 0 at and below
+    ``RELIEF_SHARE[0]``, 1 at and above ``RELIEF_SHARE[1]``, linear between."""
+    low, high = RELIEF_SHARE
+    return min(1.0, max(0.0, (share - low) / (high - low)))
+
+
+def matte_share(maps: torch.Tensor, light: torch.Tensor, fov: float, convention: str, extent: float = 1.0) -> torch.Tensor:
+    """(h, w) the diffuse's share of the luminance of ``maps`` (1, 10, h, w) rendered under the
+    flash at ``light`` (3,), in [0, 1]."""
+    from ..render import render_flash
+
+    lights = light.float().view(1, 1, 3)
+    whole = render_flash(maps.float(), lights, fov=fov, convention=convention, extent=extent)[0, 0].mean(dim=0)
+    matte_maps = maps.float().clone()
+    matte_maps[:, constants.SPECULAR] = 0.0
+    diffuse = render_flash(matte_maps, lights, fov=fov, convention=convention, extent=extent)[0, 0].mean(dim=0)
+    return (diffuse / whole.clamp(min=1e-6)).clamp(0.0, 1.0)
+
+
+#: Least ratio of the photo's side to the network's at which ``photo_relief_gain`` reads the relief's
+#: share (two octaves above the network's band); below it the normals keep their whole detail. One
+#: octave reads too noisily: on procedural materials of training seeds at 256 px (a 128 px network)
+#: a flat oiled plank read 0.114 (0.032 at 1024 px) and a relief plastic 0.64 (-0.09).
+RELIEF_MIN_FACTOR = 4
+
+#: Power of the diffuse's share that weighs the pixels of ``relief_share`` in ``photo_relief_gain``:
+#: a pixel counts fully only where the highlight hardly reaches.
+MATTE_POWER = 4
+
+
+def photo_relief_gain(photo: torch.Tensor, light: torch.Tensor, low_maps: torch.Tensor, fov: float, convention: str,
+                      extent: float = 1.0) -> float:
+    """``relief_gain`` of a photo (3, H, W) taken with the flash at ``light`` (3,), the diffuse's
+    share of it from the network's maps ``low_maps`` (1, 10, h, w) (``matte_share``); 1 for a
+    photo less than ``RELIEF_MIN_FACTOR`` times the maps' size."""
+    if min(photo.shape[-2] / low_maps.shape[-2], photo.shape[-1] / low_maps.shape[-1]) < RELIEF_MIN_FACTOR:
+        return 1.0
+    matte = matte_share(low_maps[:1].detach().cpu(), light.cpu(), fov, convention, extent)
+    return relief_gain(relief_share(photo.cpu(), light.cpu(), tuple(low_maps.shape[-2:]), extent, matte=matte**MATTE_POWER))
+
+
 def _guides(photo: torch.Tensor) -> torch.Tensor:
     """(B, 3, H, W) -> (B, 4, H, W): red, green, blue and luminance."""
     return torch.cat([photo, photo.mean(dim=1, keepdim=True)], dim=1)
@@ -82,11 +198,12 @@ def _box(image: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = WINDOW, eps: float = EPS,
-                 sigma: float = LOW_SIGMA) -> torch.Tensor:
+                 sigma: float = LOW_SIGMA, normal_gain: float = 1.0) -> torch.Tensor:
     """The gains of each map channel on the photo's contrast at the network's resolution.
 
     Args:
-        low_maps: (B, 10, h, w) the network's maps; low_photo: (B, 3, h, w) linear.
+        low_maps: (B, 10, h, w) the network's maps; low_photo: (B, 3, h, w) linear;
+        normal_gain: the normals' gains' factor (``relief_gain``).
 
     Returns:
         (B, 10, h, w) gains [map units per unit of contrast], ``GAIN_OF_CHANNEL`` applied.
@@ -99,17 +216,20 @@ def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = 
     covariance = _box(contrast * band, window) - mean_guide * mean_band
     variance = (_box(contrast * contrast, window) - mean_guide**2).clamp(min=0.0)
     strength = torch.tensor(GAIN_OF_CHANNEL, dtype=torch.float32).view(1, -1, 1, 1)
+    strength[:, constants.NORMAL] *= normal_gain
     gains = _box(covariance / (variance + eps), window)
     return gains * strength
 
 
-def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor) -> torch.Tensor:
+def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor, normal_gain: float = 1.0) -> torch.Tensor:
     """``maps`` with the photo's detail above the resolution of ``low_maps`` (module docstring).
 
     Args:
         maps: (B, 10, H, W) the maps at the working resolution (changed in place and returned).
         photo: (B, 3, H, W) linear, the photo they were captured from.
         low_maps: (B, 10, h, w) the network's maps at its own resolution (h < H).
+        normal_gain: the share of the normals' detail kept (``relief_gain``): 0 where the photo's
+            fine contrast reads as albedo alone.
 
     Returns:
         (B, 10, H, W).
@@ -120,7 +240,7 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor) 
         return maps
     with torch.no_grad():
         low_photo = downsample(photo.float(), low_size)
-        gains = detail_gains(low_maps, low_photo)
+        gains = detail_gains(low_maps, low_photo, normal_gain=normal_gain)
         low_guides = _guides(low_photo)
         factor = height // low_size[0]
         banded = (exact_in_bands(low_size[0], height) and low_size[1] * factor == width)

@@ -27,6 +27,7 @@ from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
 from ..model.symmetry import check_symmetries, parse_symmetries
+from .detail import photo_relief_gain
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -66,6 +67,12 @@ class CaptureConfig:
     detail: bool = True
     """Above the network's resolution, give the maps the photo's finer detail where their own
     variation follows the photo's (``capturing.detail``); False: the network's answer upsampled."""
+
+    relief_test: bool = True
+    """Scale the detail step's finer relief by how much of the photo's fine contrast is shading
+    (``detail.photo_relief_gain``, from 4 times the network's resolution on): an albedo's texture
+    (veined marble, grained wood) then adds no relief. False: the normals keep the gains fitted
+    against the network's relief, whatever the photo."""
 
     grey_specular: bool = False
     """Keep the specular's colour only in proportion to each pixel's metallic share (``Material.to_pbr``'s
@@ -205,6 +212,10 @@ class Prediction:
     normal_strength: float = 1.0
     """The factor of the normals' slopes (``CaptureConfig.normal_strength``)."""
 
+    normal_detail: float = 1.0
+    """The share of the normals' detail above the network's resolution kept
+    (``detail.relief_gain``): 0 where the photo's fine contrast reads as albedo alone."""
+
     @functools.cached_property
     def maps(self) -> torch.Tensor:
         """(B, 10, H, W) the maps at the photo's size."""
@@ -212,7 +223,8 @@ class Prediction:
         if self.detail_from is not None and maps.shape[-2] > self.output.maps.shape[-2]:
             from .detail import add_detail
 
-            maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps)
+            maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps,
+                              normal_gain=self.normal_detail)
         finishing = self.grey_specular or self.normal_strength != 1.0 or self.specular_floor > 0.0
         if finishing and maps is self.output.maps:
             maps = maps.clone()  # the output's own maps stay as the network gave them
@@ -366,9 +378,13 @@ class Capturer:
             # A clamped one keeps the diffuse's pixels the local unit pushed past a bound.
             output = output.unsaturated()
         output = output.with_shrunk_deviations(constants.LOBE, self.config.lobe_variation)
-        return replace(prediction, output=output, detail_from=photo.pixels[None] if self.config.detail else None,
+        detailed = self.config.detail and prediction.size[0] > output.maps.shape[-2]
+        return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
-                       normal_strength=self.config.normal_strength)
+                       normal_strength=self.config.normal_strength,
+                       normal_detail=photo_relief_gain(photo.pixels, light, output.maps, photo.fov, self.convention,
+                                                       self.model.config.plane_extent)
+                       if detailed and self.config.relief_test else 1.0)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""
@@ -432,7 +448,8 @@ class Capturer:
                                                                 "fov_source": photo.fov_source,
                                                                 "searched": config.light is None,
                                                                 "refine_steps": config.refine.steps,
-                                                                "tileable": config.tileable}})
+                                                                "tileable": config.tileable,
+                                                                "normal_detail": prediction.normal_detail}})
         return CaptureResult(material=material, photo=photo.pixels, offset=offset, fov=photo.fov,
                              fov_source=photo.fov_source, searched=config.light is None, search_history=history,
                              refinement_losses=losses, timings=timings, notes=photo.notes, output=prediction.output)

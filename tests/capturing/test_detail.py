@@ -115,3 +115,104 @@ def test_the_specular_gets_no_detail_even_where_it_follows_the_photo():
     before = maps[:, constants.SPECULAR].clone()
     after = detail.add_detail(maps, photo, low)[:, constants.SPECULAR]
     assert torch.allclose(after, before.clamp(0, 1), atol=1e-6)
+
+
+def _flash_photo(maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The photo (3, H, W) of ``maps`` under a hand-held flash, and the flash (3,)."""
+    from mideepbasis.evaluation import flash_photos
+
+    photos, lights = flash_photos(maps, torch.tensor([[0.25, -0.15]]), constants.DEFAULT_FOV_DEG, "physical", 1.0)
+    return photos[0], lights[0]
+
+
+def _matte(size: int) -> torch.Tensor:
+    """(1, 10, size, size) flat, grey, matte."""
+    maps = torch.zeros(1, 10, size, size)
+    maps[:, 2] = 1.0
+    maps[:, constants.DIFFUSE] = 0.5
+    maps[:, constants.ROUGHNESS] = 1.0
+    return maps
+
+
+def test_relief_share_tells_relief_from_albedo_texture_isotropic_or_grained():
+    import math
+
+    size = 256
+    coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
+    y, x = torch.meshgrid(-coords, coords, indexing="ij")
+    # An egg-crate relief of one albedo.
+    relief = _matte(size)
+    frequency, slope = math.pi * 24, 0.15
+    relief[0, constants.NORMAL] = torch.stack([-slope * torch.cos(frequency * x) * torch.sin(frequency * y),
+                                               -slope * torch.sin(frequency * x) * torch.cos(frequency * y),
+                                               torch.ones_like(x)]).float()
+    relief[0, constants.NORMAL] = relief[0, constants.NORMAL] / relief[0, constants.NORMAL].norm(dim=0)
+    # Flat: a fine isotropic albedo texture, and a grain along one direction (30 deg).
+    generator = torch.Generator().manual_seed(2)
+    noise = F.interpolate(torch.rand(1, 1, size // 3, size // 3, generator=generator), size=(size, size),
+                          mode="bicubic", align_corners=False)[0, 0]
+    isotropic = _matte(size)
+    isotropic[0, constants.DIFFUSE] = (0.2 + 0.5 * noise.clamp(0, 1)).expand(3, -1, -1)
+    grain = torch.cos(frequency * (x * math.cos(math.pi / 6) + y * math.sin(math.pi / 6))
+                      + 0.5 * noise.double()).float()
+    grained = _matte(size)
+    grained[0, constants.DIFFUSE] = (0.45 + 0.25 * grain).expand(3, -1, -1)
+    low, high = detail.RELIEF_SHARE
+    shares = {}
+    for name, maps in (("relief", relief), ("isotropic", isotropic), ("grained", grained)):
+        photo, light = _flash_photo(maps)
+        shares[name] = detail.relief_share(photo, light, (LOW, LOW))
+    assert shares["relief"] > high
+    assert shares["isotropic"] < low and shares["grained"] < low
+    assert detail.relief_gain(shares["relief"]) == 1.0
+    assert detail.relief_gain(shares["isotropic"]) == detail.relief_gain(shares["grained"]) == 0.0
+    assert detail.relief_gain((low + high) / 2) == pytest.approx(0.5)
+
+
+def test_normal_gain_zero_leaves_the_normals_upsampled_and_the_rest_as_with_gain_one():
+    albedo, photo = textured_scene()
+    low, maps = upsampled_answer(albedo)
+    low[:, 0:2] = 0.2 * (low[:, constants.DIFFUSE][:, 0:2] - 0.4)  # normals that follow the photo's texture
+    low[:, constants.NORMAL] = low[:, constants.NORMAL] / low[:, constants.NORMAL].norm(dim=1, keepdim=True)
+    maps = upsample_bilinear(low, SIZE, SIZE)
+    maps[:, constants.NORMAL] = maps[:, constants.NORMAL] / maps[:, constants.NORMAL].norm(dim=1, keepdim=True)
+    whole = detail.add_detail(maps.clone(), photo, low)
+    none = detail.add_detail(maps.clone(), photo, low, normal_gain=0.0)
+    assert torch.allclose(none[:, constants.NORMAL], maps[:, constants.NORMAL], atol=1e-5)
+    assert not torch.allclose(whole[:, constants.NORMAL], maps[:, constants.NORMAL], atol=1e-3)
+    assert torch.equal(none[:, constants.REFLECTANCE], whole[:, constants.REFLECTANCE])
+
+
+def test_photo_relief_gain_reads_a_grained_albedo_from_four_times_the_network_size_on():
+    import math
+
+    size = 256
+    coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
+    y, x = torch.meshgrid(-coords, coords, indexing="ij")
+    grained = _matte(size)
+    grained[0, constants.DIFFUSE] = (0.45 + 0.25 * torch.cos(math.pi * 24 * (0.8 * x + 0.6 * y))).float()
+    photo, light = _flash_photo(grained)
+    low_maps = downsample(grained, LOW)
+    assert detail.photo_relief_gain(photo, light, low_maps, constants.DEFAULT_FOV_DEG, "physical") == 0.0
+    # Twice the network's size: one octave, not read; the normals keep their detail.
+    assert detail.photo_relief_gain(photo, light, downsample(grained, size // 2), constants.DEFAULT_FOV_DEG,
+                                    "physical") == 1.0
+
+
+def test_capture_records_the_normals_detail_it_kept_and_relief_test_false_keeps_it_all(tiny_checkpoint):
+    import math
+
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
+
+    size = 256
+    coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
+    y, x = torch.meshgrid(-coords, coords, indexing="ij")
+    grained = _matte(size)
+    grained[0, constants.DIFFUSE] = (0.45 + 0.25 * torch.cos(math.pi * 24 * (0.8 * x + 0.6 * y))).float()
+    photo, _ = _flash_photo(grained)
+    kept = {}
+    for test in (True, False):
+        config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW, symmetries=1,
+                               refine=RefineConfig(steps=0), relief_test=test)
+        kept[test] = Capturer(tiny_checkpoint, config).capture(photo).material.provenance["capture"]["normal_detail"]
+    assert kept == {True: 0.0, False: 1.0}
