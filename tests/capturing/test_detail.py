@@ -183,14 +183,20 @@ def test_normal_gain_zero_leaves_the_normals_upsampled_and_the_rest_as_with_gain
     assert torch.equal(none[:, constants.REFLECTANCE], whole[:, constants.REFLECTANCE])
 
 
-def test_photo_relief_gain_reads_a_grained_albedo_from_four_times_the_network_size_on():
+def _plain_grain(size: int) -> torch.Tensor:
+    """(1, 10, size, size) flat and matte, its albedo a straight grain (24 cycles across)."""
     import math
 
-    size = 256
     coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
     y, x = torch.meshgrid(-coords, coords, indexing="ij")
     grained = _matte(size)
     grained[0, constants.DIFFUSE] = (0.45 + 0.25 * torch.cos(math.pi * 24 * (0.8 * x + 0.6 * y))).float()
+    return grained
+
+
+def test_photo_relief_gain_reads_a_grained_albedo_from_four_times_the_network_size_on():
+    size = 256
+    grained = _plain_grain(size)
     photo, light = _flash_photo(grained)
     low_maps = downsample(grained, LOW)
     assert detail.photo_relief_gain(photo, light, low_maps, constants.DEFAULT_FOV_DEG, "physical") == 0.0
@@ -200,15 +206,10 @@ def test_photo_relief_gain_reads_a_grained_albedo_from_four_times_the_network_si
 
 
 def test_capture_records_the_normals_detail_it_kept_and_relief_test_false_keeps_it_all(tiny_checkpoint):
-    import math
-
     from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
 
     size = 256
-    coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
-    y, x = torch.meshgrid(-coords, coords, indexing="ij")
-    grained = _matte(size)
-    grained[0, constants.DIFFUSE] = (0.45 + 0.25 * torch.cos(math.pi * 24 * (0.8 * x + 0.6 * y))).float()
+    grained = _plain_grain(size)
     photo, _ = _flash_photo(grained)
     kept = {}
     for test in (True, False):

@@ -233,15 +233,9 @@ def test_the_lobe_loss_grows_with_the_log_of_the_miss_and_pulls_the_roughness():
 
 
 def test_a_run_with_the_lobe_loss_logs_it(tmp_path):
-    import json
-
     from tests.train.helpers import tiny_config
-    from mideepbasis.train import Trainer
 
-    Trainer(tiny_config(tmp_path, steps=2, lobe_weight=0.5), progress=False).run()
-    records = [json.loads(line) for line in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
-    logged = [record for record in records if "l_lobe" in record]
-    assert logged and all(record["l_lobe"] >= 0 for record in logged)
+    assert all(value >= 0 for value in _logged_in_a_run(tmp_path, "l_lobe", lobe_weight=0.5))
     with pytest.raises(ValueError, match="lobe_weight"):
         tiny_config(tmp_path, lobe_weight=-1.0)
 
@@ -275,15 +269,9 @@ def test_the_global_blend_loss_by_hand_sees_the_global_bases_and_not_the_deviati
 
 
 def test_a_run_with_the_global_blend_loss_logs_it_and_the_pools_refuse_it(tmp_path):
-    import json
-
     from tests.train.helpers import local_pool_config, pool_config, tiny_config
-    from mideepbasis.train import Trainer
 
-    Trainer(tiny_config(tmp_path, steps=2, global_weight=0.5), progress=False).run()
-    records = [json.loads(line) for line in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
-    logged = [record for record in records if "l_global" in record]
-    assert logged and all(record["l_global"] > 0 for record in logged)
+    assert all(value > 0 for value in _logged_in_a_run(tmp_path, "l_global", global_weight=0.5))
     with pytest.raises(ValueError, match="global_weight"):
         tiny_config(tmp_path, global_weight=-1.0)
     for pool in (local_pool_config, pool_config):
@@ -323,17 +311,25 @@ def test_the_specular_colour_loss_by_hand_sees_ratios_not_levels():
 
 
 def test_a_run_with_the_specular_colour_loss_logs_it_and_the_pools_refuse_it(tmp_path):
-    import json
-
     from tests.train.helpers import local_pool_config, pool_config, tiny_config
-    from mideepbasis.train import Trainer
 
-    Trainer(tiny_config(tmp_path, steps=2, colour_weight=0.5), progress=False).run()
-    records = [json.loads(line) for line in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
-    logged = [record for record in records if "l_colour" in record]
-    assert logged and all(record["l_colour"] >= 0 for record in logged)
+    assert all(value >= 0 for value in _logged_in_a_run(tmp_path, "l_colour", colour_weight=0.5))
     with pytest.raises(ValueError, match="colour_weight"):
         tiny_config(tmp_path, colour_weight=-1.0)
     for pool in (local_pool_config, pool_config):
         with pytest.raises(ValueError, match="colour_weight weighs the whole network's step"):
             pool(tmp_path, colour_weight=0.5)
+
+
+def _logged_in_a_run(tmp_path, key: str, **overrides) -> list[float]:
+    """The values of ``key`` a two-step tiny run with ``overrides`` logged (at least one)."""
+    import json
+
+    from tests.train.helpers import tiny_config
+    from mideepbasis.train import Trainer
+
+    Trainer(tiny_config(tmp_path, steps=2, **overrides), progress=False).run()
+    records = [json.loads(line) for line in (tmp_path / "run" / "train.jsonl").read_text().splitlines()]
+    logged = [record[key] for record in records if key in record]
+    assert logged
+    return logged
