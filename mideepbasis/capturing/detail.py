@@ -85,6 +85,7 @@ RELIEF_SHARE = (0.10, 0.25)
 #: first (the shading's direction shows at every scale above the network's band).
 RELIEF_SIZE = 1024
 
+
 def relief_share(photo: torch.Tensor, light: torch.Tensor, low_size: tuple[int, int], extent: float = 1.0,
                  matte: torch.Tensor | None = None, max_size: int = RELIEF_SIZE) -> float:
     """How much of the photo's fine contrast is shading: the part of its gradients' direction
