@@ -403,7 +403,8 @@ def main() -> None:
     parser.add_argument("--sheet", type=Path, default=RESULTS / "detail_crops.png")
     parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
     parser.add_argument("--no-relief-test", action="store_true",
-                        help="capture with the normals' detail not scaled by the photo's relief share (CaptureConfig.relief_test)")
+                        help="capture with the normals' detail not scaled by the photo's relief share "
+                             "(CaptureConfig.relief_test)")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
     parser.add_argument("--registration", type=Path, default=None, metavar="DIR",

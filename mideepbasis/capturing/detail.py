@@ -152,7 +152,8 @@ def relief_gain(share: float) -> float:
     return min(1.0, max(0.0, (share - low) / (high - low)))
 
 
-def matte_share(maps: torch.Tensor, light: torch.Tensor, fov: float, convention: str, extent: float = 1.0) -> torch.Tensor:
+def matte_share(maps: torch.Tensor, light: torch.Tensor, fov: float, convention: str,
+                extent: float = 1.0) -> torch.Tensor:
     """(h, w) the diffuse's share of the luminance of ``maps`` (1, 10, h, w) rendered under the
     flash at ``light`` (3,), in [0, 1]."""
     from ..render import render_flash
@@ -184,7 +185,8 @@ def photo_relief_gain(photo: torch.Tensor, light: torch.Tensor, low_maps: torch.
     if min(photo.shape[-2] / low_maps.shape[-2], photo.shape[-1] / low_maps.shape[-1]) < RELIEF_MIN_FACTOR:
         return 1.0
     matte = matte_share(low_maps[:1].detach().cpu(), light.cpu(), fov, convention, extent)
-    return relief_gain(relief_share(photo.cpu(), light.cpu(), tuple(low_maps.shape[-2:]), extent, matte=matte**MATTE_POWER))
+    share = relief_share(photo.cpu(), light.cpu(), tuple(low_maps.shape[-2:]), extent, matte=matte**MATTE_POWER)
+    return relief_gain(share)
 
 
 def _guides(photo: torch.Tensor) -> torch.Tensor:
@@ -222,7 +224,8 @@ def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = 
     return gains * strength
 
 
-def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor, normal_gain: float = 1.0) -> torch.Tensor:
+def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
+               normal_gain: float = 1.0) -> torch.Tensor:
     """``maps`` with the photo's detail above the resolution of ``low_maps`` (module docstring).
 
     Args:

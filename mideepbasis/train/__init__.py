@@ -34,8 +34,8 @@ from .data import (LocalUnitBatch, LocalUnitPool, NormalUnitPool, PhotographedPo
                    augment)
 from .losses import (HIGHLIGHT_PEAK_QUANTILE, channel_weights, global_blend_loss, highlight_weights,
                      learning_rate_factor, normal_unit_loss, normals_over_flat, rendering_loss, sample_render_geometry,
-                     saturation_penalty, specular_colour_loss, specular_lobe, supervised_loss, variation_consistency_loss,
-                     vary_signed)
+                     saturation_penalty, specular_colour_loss, specular_lobe, supervised_loss,
+                     variation_consistency_loss, vary_signed)
 from .trainer import VALIDATION_CHUNK, VALIDATION_SEED, Trainer, TrainingDiverged, train, widen_inputs
 
 __all__ = [
