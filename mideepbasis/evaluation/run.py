@@ -86,6 +86,10 @@ class EvaluationConfig:
     """Give the maps the photo's detail above the network's resolution, as ``capture`` does
     (``CaptureConfig.detail``)."""
 
+    relief_test: bool | None = None
+    """Scale the detail step's finer relief by the photo's relief share, as ``capture`` does from 4
+    times the network's resolution on (``CaptureConfig.relief_test``; None: capture's default)."""
+
     grey_specular: bool | None = None
     """Make the specular grey but for each pixel's metallic share, as ``capture --grey-specular``
     does (``CaptureConfig.grey_specular``; None: capture's default)."""
@@ -164,7 +168,8 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
 
 
 #: The fields an evaluation shares with ``CaptureConfig``, None in the evaluation for capture's default.
-SHARED_CAPTURE_FIELDS = ("symmetries", "grey_specular", "specular_floor", "normal_strength", "lobe_variation")
+SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "grey_specular", "specular_floor", "normal_strength",
+                         "lobe_variation")
 
 
 def capture_options(config: EvaluationConfig | None) -> dict:
