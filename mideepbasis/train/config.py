@@ -291,18 +291,12 @@ class TrainConfig:
         if self.global_roughness_jitter < 0 or self.global_specular_jitter < 0:
             raise ValueError(f"global_roughness_jitter {self.global_roughness_jitter} and global_specular_jitter "
                              f"{self.global_specular_jitter} must be 0 (off) or positive")
-        if self.lobe_weight < 0:
-            raise ValueError(f"lobe_weight {self.lobe_weight} must be 0 (off) or positive")
-        if self.lobe_weight and (self.local_pool or self.normal_pool):
-            raise ValueError("lobe_weight weighs the whole network's step: the unit pools do not take it")
-        if self.colour_weight < 0:
-            raise ValueError(f"colour_weight {self.colour_weight} must be 0 (off) or positive")
-        if self.colour_weight and (self.local_pool or self.normal_pool):
-            raise ValueError("colour_weight weighs the whole network's step: the unit pools do not take it")
-        if self.global_weight < 0:
-            raise ValueError(f"global_weight {self.global_weight} must be 0 (off) or positive")
-        if self.global_weight and (self.local_pool or self.normal_pool):
-            raise ValueError("global_weight weighs the whole network's step: the unit pools do not take it")
+        for name in WHOLE_STEP_WEIGHTS:
+            weight = getattr(self, name)
+            if weight < 0:
+                raise ValueError(f"{name} {weight} must be 0 (off) or positive")
+            if weight and (self.local_pool or self.normal_pool):
+                raise ValueError(f"{name} weighs the whole network's step: the unit pools do not take it")
         if self.global_weight and not self.network.use_bases:
             raise ValueError("global_weight holds the global bases' blend: it needs a network with bases")
         if (self.global_roughness_jitter or self.global_specular_jitter) and not self.local_pool:
@@ -368,6 +362,9 @@ NORMAL_UNIT_FIELDS = ("normal_unit_width", "normal_unit_blocks", "normal_unit_mi
 #: NetworkConfig fields that change how the network runs but none of its weights: ``--init`` may
 #: change them freely.
 WEIGHTLESS_FIELDS = ("normal_unit_octaves", "normal_slope_scaled", "error_map")
+
+#: Weights of the optional terms of the whole network's step (``Trainer``), each 0 (off) or positive.
+WHOLE_STEP_WEIGHTS = ("lobe_weight", "colour_weight", "global_weight")
 
 #: Parts of DeepBasisNet (its top-level modules) that ``train_only`` may name.
 TRAINABLE_PARTS = ("encoder", "weight_decoder", "global_unit", "local_unit", "normal_unit")

@@ -281,23 +281,24 @@ class Trainer:
         taken = original if use_vc else output  # the answer to the photos as taken
         predicted = taken.maps
         anchored = self._anchor_loss(taken, batch)
-        lobe = torch.zeros((), device=self.device)
+        # The optional terms (``WHOLE_STEP_WEIGHTS``), each computed and logged only when weighed.
+        terms = {}
         if config.lobe_weight:
-            lobe = lobe_loss(predicted, target, batch.lights.to(self.device), batch.fov, config.network.convention,
-                             config.network.plane_extent)
-        blend = global_blend_loss(taken, target) if config.global_weight else torch.zeros((), device=self.device)
-        colour = specular_colour_loss(predicted, target) if config.colour_weight else torch.zeros((), device=self.device)
+            terms["l_lobe"] = config.lobe_weight, lobe_loss(predicted, target, batch.lights.to(self.device), batch.fov,
+                                                            config.network.convention, config.network.plane_extent)
+        if config.global_weight:
+            terms["l_global"] = config.global_weight, global_blend_loss(taken, target)
+        if config.colour_weight:
+            terms["l_colour"] = config.colour_weight, specular_colour_loss(predicted, target)
         loss, losses = self._with_rendering_loss(sup + config.vc_weight * vc + config.saturation_weight * saturation
-                                                 + config.anchor_weight * anchored + config.lobe_weight * lobe
-                                                 + config.global_weight * blend + config.colour_weight * colour,
+                                                 + config.anchor_weight * anchored
+                                                 + sum(weight * value for weight, value in terms.values()),
                                                  predicted, target)
         norm = self._optimise(loss)
         anchor_log = {"l_anchor": anchored.item()} if self.anchor is not None else {}
-        lobe_log = {"l_lobe": lobe.item()} if config.lobe_weight else {}
-        blend_log = {"l_global": blend.item()} if config.global_weight else {}
-        blend_log |= {"l_colour": colour.item()} if config.colour_weight else {}
         return {"loss": loss.item(), "l_sup": sup.item(), "l_vc": vc.item(), "l_saturation": saturation.item(),
-                **anchor_log, **lobe_log, **blend_log, **losses, "grad_norm": norm.item()}
+                **anchor_log, **{key: value.item() for key, (_, value) in terms.items()}, **losses,
+                "grad_norm": norm.item()}
 
     def _anchor_loss(self, output: DeepBasisOutput, batch: TrainingBatch) -> torch.Tensor:
         """The supervised L1 between ``output`` (of ``batch.inputs``) and the anchor's maps of the
