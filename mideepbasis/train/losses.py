@@ -1,7 +1,7 @@
 """The losses of training and what they need: the supervised and variation-consistency losses,
 the decoder's saturation penalty, the re-rendering loss and its random lights and views, the
-highlight weights of the diffuse loss, the specular lobe's loss, the global blend's loss, the
-normal pool's loss, and the learning-rate schedule."""
+highlight weights of the diffuse loss, the specular lobe's loss, the specular colour's loss, the
+global blend's loss, the normal pool's loss, and the learning-rate schedule."""
 
 from __future__ import annotations
 
