@@ -43,3 +43,21 @@ def directional_albedo(view_angle_deg: float, diffuse: float = 1.0, roughness: f
     value = reference.eval_cosine("physical", normal, view.view(1, 3, 1, 1).expand_as(light), light, ones * diffuse,
                                   ones[:, :1] * roughness, ones * specular)
     return float((value[0, 0] * torch.sin(t)).sum() * (math.pi / 2 / steps) * (2 * math.pi / (2 * steps)))
+
+
+def matte_egg_crate(size: int, cycles: int, slope: float) -> torch.Tensor:
+    """(1, 10, size, size): grey Lambertian albedo, no specular, normals of the height
+    h = a sin(pi k x) sin(pi k y) on [-1, 1]^2 (k = ``cycles``), a = slope / (pi k): peak slope ``slope``."""
+    from mideepbasis import constants, geometry
+
+    coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
+    y, x = torch.meshgrid(-coords, coords, indexing="ij")
+    frequency = math.pi * cycles
+    dh_dx = slope * torch.cos(frequency * x) * torch.sin(frequency * y)
+    dh_dy = slope * torch.sin(frequency * x) * torch.cos(frequency * y)
+    normal = geometry.unit_vectors(torch.stack([-dh_dx, -dh_dy, torch.ones_like(x)]), dim=0).float()
+    maps = torch.zeros(1, 10, size, size)
+    maps[0, constants.NORMAL] = normal
+    maps[0, constants.DIFFUSE] = 0.5
+    maps[0, constants.ROUGHNESS] = 1.0
+    return maps

@@ -11,6 +11,8 @@ from mideepbasis import constants
 from mideepbasis.capturing import detail
 from mideepbasis.resampling import downsample, gaussian_blur, upsample_bilinear
 
+from ..helpers import matte_egg_crate
+
 #: What the tests ask: high-band energy of the detailed diffuse against the truth's, and how much of
 #: the upsampled answer's error the detail removes.
 TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "flat_normal": 1e-3}
@@ -140,19 +142,14 @@ def test_relief_share_tells_relief_from_albedo_texture_isotropic_or_grained():
     size = 256
     coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
     y, x = torch.meshgrid(-coords, coords, indexing="ij")
-    # An egg-crate relief of one albedo.
-    relief = _matte(size)
-    frequency, slope = math.pi * 24, 0.15
-    relief[0, constants.NORMAL] = torch.stack([-slope * torch.cos(frequency * x) * torch.sin(frequency * y),
-                                               -slope * torch.sin(frequency * x) * torch.cos(frequency * y),
-                                               torch.ones_like(x)]).float()
-    relief[0, constants.NORMAL] = relief[0, constants.NORMAL] / relief[0, constants.NORMAL].norm(dim=0)
+    relief = matte_egg_crate(size, cycles=24, slope=0.15)  # an egg-crate relief of one albedo
     # Flat: a fine isotropic albedo texture, and a grain along one direction (30 deg).
     generator = torch.Generator().manual_seed(2)
     noise = F.interpolate(torch.rand(1, 1, size // 3, size // 3, generator=generator), size=(size, size),
                           mode="bicubic", align_corners=False)[0, 0]
     isotropic = _matte(size)
     isotropic[0, constants.DIFFUSE] = (0.2 + 0.5 * noise.clamp(0, 1)).expand(3, -1, -1)
+    frequency = math.pi * 24
     grain = torch.cos(frequency * (x * math.cos(math.pi / 6) + y * math.sin(math.pi / 6))
                       + 0.5 * noise.double()).float()
     grained = _matte(size)

@@ -1,35 +1,17 @@
 """``benchmarks/detail.py``'s shading_visibility: a matte surface's fine relief shows in its flash
 photo as the first-order shading ``(l_xy / l_z) . dn_xy``, with slope 1."""
 
-import math
-
 import torch
 
-from mideepbasis import constants, geometry
+from mideepbasis import constants
 from mideepbasis.evaluation import flash_photos
 
-from ..helpers import benchmark_module
-
-
-def _matte_relief(size: int, cycles: int, slope: float) -> torch.Tensor:
-    """(1, 10, size, size): grey Lambertian albedo, no specular, normals of the height
-    h = a sin(pi k x) sin(pi k y) on [-1, 1]^2 (k = ``cycles``), a = slope / (pi k): peak slope ``slope``."""
-    coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2 - 1
-    y, x = torch.meshgrid(-coords, coords, indexing="ij")
-    frequency = math.pi * cycles
-    dh_dx = slope * torch.cos(frequency * x) * torch.sin(frequency * y)
-    dh_dy = slope * torch.sin(frequency * x) * torch.cos(frequency * y)
-    normal = geometry.unit_vectors(torch.stack([-dh_dx, -dh_dy, torch.ones_like(x)]), dim=0).float()
-    maps = torch.zeros(1, 10, size, size)
-    maps[0, constants.NORMAL] = normal
-    maps[0, constants.DIFFUSE] = 0.5
-    maps[0, constants.ROUGHNESS] = 1.0
-    return maps
+from ..helpers import benchmark_module, matte_egg_crate
 
 
 def test_matte_relief_shows_with_slope_one():
     detail = benchmark_module("detail")
-    maps = _matte_relief(256, cycles=24, slope=0.15)
+    maps = matte_egg_crate(256, cycles=24, slope=0.15)
     photos, lights = flash_photos(maps, torch.tensor([[0.3, -0.2]]), constants.DEFAULT_FOV_DEG, "physical", 1.0)
     seen = detail.shading_visibility(maps, photos, lights[0], band=64)
     assert seen["correlation"] > 0.9
