@@ -28,7 +28,10 @@ colour into relief). A flat normal has no energy to divide by: beside the ratios
 fine tilt [deg] (the normals' energy above the band as an RMS angle) shows relief made up.
 
 ``--visibility`` measures instead how much of the truth's fine relief the photo shows at all
-(``shading_visibility``): no capture, entry ``detail_visibility``.
+(``shading_visibility``): no capture, entry ``detail_visibility``. With ``--swap-reflectance``
+each relief is photographed under the next relief material's diffuse, roughness and specular, so
+that what the photo shows cannot come through an albedo that follows the relief: entry
+``detail_visibility_swapped``.
 
 ``--registration DIR`` measures instead how much of a calibrated real scene's fine detail (its
 photo 00's contrast above the band) the other photos show where it is (``registration``): the
@@ -295,14 +298,27 @@ def window_explained(contrast: torch.Tensor, tilt: torch.Tensor, fine: torch.Ten
     return 1.0 - residual / energy
 
 
+def with_reflectance_of(relief: torch.Tensor, other: torch.Tensor) -> torch.Tensor:
+    """Maps (1, 10, H, W) with the normals of ``relief`` and the diffuse, roughness and specular of
+    ``other``: a relief whose albedo does not follow it."""
+    return torch.cat([relief[:, constants.NORMAL], other[:, constants.REFLECTANCE]], dim=1)
+
+
 def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, convention: str, extent: float) -> dict:
-    """``shading_visibility`` of each relief material, printed, and their means."""
+    """``shading_visibility`` of each relief material, printed, and their means; with
+    ``args.swap_reflectance`` each relief under the next relief material's reflectance
+    (``with_reflectance_of``; the last under the first's)."""
     rows = []
+    reliefs = [material for material in chosen if material["kind"] == "relief"]
     print(f"{'material':36s} correlation  slope  along light  explained  window")
     for index, material in enumerate(chosen):
         if material["kind"] != "relief":
             continue
         truth, variant = true_maps(material, args.size)
+        if args.swap_reflectance:
+            following = reliefs[(reliefs.index(material) + 1) % len(reliefs)]
+            truth = with_reflectance_of(truth, true_maps(following, args.size)[0])
+            variant = f"{variant} under {following['family']}"
         photos, lights = flash_photos(truth, offsets[index:index + 1], constants.DEFAULT_FOV_DEG, convention, extent)
         row = {**material, "variant": variant, **shading_visibility(truth, photos, lights[0], args.band)}
         rows.append(row)
@@ -312,7 +328,8 @@ def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, conventio
     means = {key: float(np.mean([row[key] for row in rows])) for key in keys}
     print(f"{'mean':36s} {means['correlation']:11.2f} {'':6s} {means['along_light']:12.2f} {means['explained']:10.3f} "
           f"{means['window_explained']:7.3f}")
-    return {"size": args.size, "band": args.band, "seed": args.seed, "mean": means, "per_material": rows}
+    return {"size": args.size, "band": args.band, "seed": args.seed, "swap_reflectance": args.swap_reflectance,
+            "mean": means, "per_material": rows}
 
 
 def registration(folder: Path, band: int) -> list[dict]:
@@ -407,6 +424,9 @@ def main() -> None:
                              "(CaptureConfig.relief_test)")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
+    parser.add_argument("--swap-reflectance", action="store_true",
+                        help="with --visibility: each relief under the next relief material's diffuse, roughness "
+                             "and specular, so that its albedo does not follow its relief")
     parser.add_argument("--registration", type=Path, default=None, metavar="DIR",
                         help="only measure how the fine detail of the calibrated scenes in DIR lines up across their "
                              "photos (registration)")
@@ -424,7 +444,8 @@ def main() -> None:
     chosen = materials(args.materials, args.flat)
     offsets = evaluation_offsets(len(chosen), args.seed, fov)
     if args.visibility:
-        write_section(args.output, "detail_visibility", "detail --visibility",
+        key = "detail_visibility_swapped" if args.swap_reflectance else "detail_visibility"
+        write_section(args.output, key, f"detail --visibility{' --swap-reflectance' * args.swap_reflectance}",
                       visibility_report(chosen, offsets, args, convention, extent))
         return
     labels = row_labels(args.size, args.low)

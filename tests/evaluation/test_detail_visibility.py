@@ -31,3 +31,19 @@ def test_the_window_oracle_explains_nothing_of_unrelated_contrast():
     tilt = torch.randn(2, 256, 256, generator=generator)
     fine = torch.randn(2, 256, 256, generator=generator)
     assert abs(detail.window_explained(noise, tilt, fine)) < 0.05  # 676 taps fitted on 40,000 pixels
+
+
+def test_a_swapped_reflectance_keeps_the_relief_and_takes_the_other_albedo():
+    detail = benchmark_module("detail")
+    relief = matte_egg_crate(32, cycles=4, slope=0.15)
+    other = torch.rand(1, constants.BASIS_CHANNELS, 32, 32, generator=torch.Generator().manual_seed(5))
+    swapped = detail.with_reflectance_of(relief, other)
+    assert torch.equal(swapped[:, constants.NORMAL], relief[:, constants.NORMAL])
+    assert torch.equal(swapped[:, constants.REFLECTANCE], other[:, constants.REFLECTANCE])
+    # Under a plain albedo the egg-crate shows as before; under the other's noise its shading is swamped.
+    lights = torch.tensor([[0.3, -0.2]])
+    seen = {}
+    for name, maps in (("plain", relief), ("swapped", swapped)):
+        photos, flashes = flash_photos(maps, lights)
+        seen[name] = detail.shading_visibility(maps, photos, flashes[0], band=8)["correlation"]
+    assert seen["swapped"] < seen["plain"] - 0.3
