@@ -80,6 +80,14 @@ SHEET_MATERIALS = {"relief": 2, "flat textured": 1}
 MAPS = tuple(constants.MAP_SLICES)
 
 
+def jittered(photos: torch.Tensor, sigma: float, seed: int) -> torch.Tensor:
+    """``photos`` times 1 + sigma N(0, 1), drawn per pixel and channel from ``seed``: for
+    ``--photo-jitter``, the photo changed far below its 8-bit steps (1 / 255 of full scale)."""
+    generator = torch.Generator().manual_seed(seed)
+    noise = torch.randn(photos.shape, generator=generator, dtype=photos.dtype)
+    return photos * (1.0 + sigma * noise)
+
+
 def row_labels(size: int, low: int) -> tuple[str, str, str]:
     """The three ways of capturing: upsampled from ``low`` px, full size without and with detail."""
     return f"upsampled {low}", f"{size}, no detail", f"{size}, detail"
@@ -419,6 +427,11 @@ def main() -> None:
                         help="JSON file whose entry detail gets the figures")
     parser.add_argument("--sheet", type=Path, default=RESULTS / "detail_crops.png")
     parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
+    parser.add_argument("--photo-jitter", type=float, default=0.0, metavar="SIGMA",
+                        help="multiply each photo by 1 + SIGMA N(0, 1) per pixel and channel (seeded by --jitter-seed): "
+                             "how far the result moves for a change far below the photo's 8-bit steps; entry "
+                             "detail_photo_jitter_SEED")
+    parser.add_argument("--jitter-seed", type=int, default=0, help="seed of --photo-jitter's noise")
     parser.add_argument("--no-relief-test", action="store_true",
                         help="capture with the normals' detail not scaled by the photo's relief share "
                              "(CaptureConfig.relief_test)")
@@ -460,6 +473,8 @@ def main() -> None:
         truth, variant = true_maps(material, args.size)
         offset = (float(offsets[index, 0]), float(offsets[index, 1]))
         photos, _ = flash_photos(truth, offsets[index:index + 1], fov, convention, extent)
+        if args.photo_jitter > 0:
+            photos = jittered(photos, args.photo_jitter, args.jitter_seed * 1000 + index)
         truth_renders = rerender(truth, lights, views, convention)
         truth_energy = high_band_energy(truth, args.band)
         record = {**material, "variant": variant, "offset": list(offset),
@@ -518,8 +533,13 @@ def main() -> None:
             print_table(group, groups[group])
     report = {"model": args.model or "shipped", "size": args.size, "low": args.low, "band": args.band,
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
-              "refine_steps": base.refine.steps, "groups": groups, "per_material": records}
-    write_section(args.output, "detail", "detail", report)
+              "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed, "groups": groups,
+              "per_material": records}
+    if args.photo_jitter > 0:
+        write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}",
+                      f"detail --photo-jitter {args.photo_jitter:g} --jitter-seed {args.jitter_seed}", report)
+    else:
+        write_section(args.output, "detail", "detail", report)
     if sheet_rows:
         write_sheet(args.sheet, sheet_rows)
 
