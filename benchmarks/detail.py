@@ -33,6 +33,11 @@ each relief is photographed under the next relief material's diffuse, roughness 
 that what the photo shows cannot come through an albedo that follows the relief: entry
 ``detail_visibility_swapped``.
 
+``--photo-jitter SIGMA`` multiplies each photo by 1 + SIGMA N(0, 1) (``--jitter-seed``) before
+capturing, far below its 8-bit steps at 1e-5: how much of a difference between the rows is the
+refinement's spread on glossy materials rather than the resolution. Entry
+``detail_photo_jitter_SEED``.
+
 ``--registration DIR`` measures instead how much of a calibrated real scene's fine detail (its
 photo 00's contrast above the band) the other photos show where it is (``registration``): the
 real protocol at full resolution can credit a detail step only with that. No capture, entry
@@ -428,9 +433,9 @@ def main() -> None:
     parser.add_argument("--sheet", type=Path, default=RESULTS / "detail_crops.png")
     parser.add_argument("--no-sheet", action="store_true", help="skip the contact sheet")
     parser.add_argument("--photo-jitter", type=float, default=0.0, metavar="SIGMA",
-                        help="multiply each photo by 1 + SIGMA N(0, 1) per pixel and channel (seeded by --jitter-seed): "
-                             "how far the result moves for a change far below the photo's 8-bit steps; entry "
-                             "detail_photo_jitter_SEED")
+                        help="multiply each photo by 1 + SIGMA N(0, 1) per pixel and channel (seeded by "
+                             "--jitter-seed): how far the result moves for a change far below the photo's 8-bit "
+                             "steps; entry detail_photo_jitter_SEED")
     parser.add_argument("--jitter-seed", type=int, default=0, help="seed of --photo-jitter's noise")
     parser.add_argument("--no-relief-test", action="store_true",
                         help="capture with the normals' detail not scaled by the photo's relief share "
@@ -533,8 +538,8 @@ def main() -> None:
             print_table(group, groups[group])
     report = {"model": args.model or "shipped", "size": args.size, "low": args.low, "band": args.band,
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
-              "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed, "groups": groups,
-              "per_material": records}
+              "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
+              "groups": groups, "per_material": records}
     if args.photo_jitter > 0:
         write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}",
                       f"detail --photo-jitter {args.photo_jitter:g} --jitter-seed {args.jitter_seed}", report)
