@@ -38,6 +38,10 @@ capturing, far below its 8-bit steps at 1e-5: how much of a difference between t
 refinement's spread on glossy materials rather than the resolution. Entry
 ``detail_photo_jitter_SEED``.
 
+``--first-seed N`` takes the materials from seed N on instead of the benchmark's: a set apart
+from it to calibrate the detail step's constants on (``detail.NORMAL_GAIN``). Entry
+``detail_seeds_N``.
+
 ``--registration DIR`` measures instead how much of a calibrated real scene's fine detail (its
 photo 00's contrast above the band) the other photos show where it is (``registration``): the
 real protocol at full resolution can credit a detail step only with that. No capture, entry
@@ -98,12 +102,14 @@ def row_labels(size: int, low: int) -> tuple[str, str, str]:
     return f"upsampled {low}", f"{size}, no detail", f"{size}, detail"
 
 
-def materials(relief: int, flat: int) -> list[dict]:
-    """The benchmark's materials: kind, family, seed (no maps: they are made one at a time)."""
+def materials(relief: int, flat: int, first_seed: int = HELD_OUT_SEED) -> list[dict]:
+    """The benchmark's materials: kind, family, seed (no maps: they are made one at a time); the
+    relief ones from ``first_seed`` on, the flat textured ones searched from ``first_seed`` plus
+    ``FLAT_SEED - HELD_OUT_SEED``."""
     families = sorted(FAMILIES)
-    chosen = [{"kind": "relief", "family": families[i % len(families)], "seed": HELD_OUT_SEED + i}
+    chosen = [{"kind": "relief", "family": families[i % len(families)], "seed": first_seed + i}
               for i in range(relief)]
-    seed = FLAT_SEED
+    seed = first_seed + FLAT_SEED - HELD_OUT_SEED
     for index in range(flat):
         family, variants = FLAT_KINDS[index % len(FLAT_KINDS)]
         # The variant is the family's first draw, the same at every size: read it off a small copy.
@@ -171,23 +177,26 @@ def finite(value: float) -> float | None:
 
 
 def network_band_moments(result, truth: torch.Tensor) -> dict:
-    """How the network's diffuse at its own resolution follows the truth's just below it: the
-    sums of products of the two bands ``m - blur(m)`` (``detail.LOW_SIGMA``, the band the detail
-    step's gains are fitted in), the truth area-averaged to the network's size. Pooled over a
-    group, ``predicted_truth / truth_truth`` is the slope of the network's band on the truth's (1:
-    as strong as the truth's; the detail step's gains inherit it: ``detail.DIFFUSE_GAIN``)."""
+    """How the network's diffuse and normals' slopes at its own resolution follow the truth's just
+    below it: the sums of products of the two bands ``m - blur(m)`` (``detail.LOW_SIGMA``, the band
+    the detail step's gains are fitted in), the truth area-averaged to the network's size, keyed
+    ``diffuse`` and ``normal`` (its x and y). Pooled over a group, ``predicted_truth /
+    truth_truth`` is the slope of the network's band on the truth's (1: as strong as the truth's;
+    the detail step's gains inherit it: ``detail.DIFFUSE_GAIN``, ``detail.NORMAL_GAIN``)."""
     from mideepbasis.capturing.detail import LOW_SIGMA
     from mideepbasis.resampling import gaussian_blur
-
-    predicted = result.output.maps[:, constants.DIFFUSE].float().cpu()
-    true = downsample(truth[:, constants.DIFFUSE], tuple(predicted.shape[-2:]))
 
     def band(image):
         return image - gaussian_blur(image, LOW_SIGMA, padding="replicate")
 
-    predicted, true = band(predicted), band(true)
-    return {"predicted_truth": float((predicted * true).sum()), "truth_truth": float((true * true).sum()),
-            "predicted_predicted": float((predicted * predicted).sum())}
+    moments = {}
+    for name, channels in (("diffuse", constants.DIFFUSE), ("normal", slice(0, 2))):
+        predicted = result.output.maps[:, channels].float().cpu()
+        true = band(downsample(truth[:, channels], tuple(predicted.shape[-2:])))
+        predicted = band(predicted)
+        moments[name] = {"predicted_truth": float((predicted * true).sum()), "truth_truth": float((true * true).sum()),
+                         "predicted_predicted": float((predicted * predicted).sum())}
+    return moments
 
 
 def fine_tilt_deg(normal_energy: float) -> float:
@@ -213,11 +222,16 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
                        for name in MAPS},
             "fine_tilt_deg": fine_tilt_deg(energy["normal"] / len(records)),
             "seconds_median": float(np.median([row["seconds"] for row in rows]))}
-    moments = {key: sum(r["network_band"][key] for r in records) for key in records[0]["network_band"]}
-    return {"materials": len(records), "truth_fine_tilt_deg": fine_tilt_deg(truth_energy["normal"] / len(records)),
-            "rows": summary, "network_diffuse_band": {
+    bands = {}
+    for name in ("diffuse", "normal"):
+        moments = {key: sum(r["network_band"][name][key] for r in records) for key in records[0]["network_band"][name]}
+        if moments["truth_truth"] > 0:  # a flat textured group's normals have no band
+            bands[f"network_{name}_band"] = {
                 "slope": moments["predicted_truth"] / moments["truth_truth"],
-                "correlation": moments["predicted_truth"] / math.sqrt(moments["predicted_predicted"] * moments["truth_truth"])}}
+                "correlation": moments["predicted_truth"] / math.sqrt(moments["predicted_predicted"]
+                                                                      * moments["truth_truth"])}
+    return {"materials": len(records), "truth_fine_tilt_deg": fine_tilt_deg(truth_energy["normal"] / len(records)),
+            "rows": summary, **bands}
 
 
 #: Radius of the windows of ``window_explained``'s oracle filter [pixels at the capture's size].
@@ -411,9 +425,12 @@ def print_table(group: str, summary: dict) -> None:
               f"{rmse['specular']:7.4f} {row['render_rmse']:7.4f}   "
               + " ".join(number(row["detail"][name]) for name in MAPS)
               + f"   {row['fine_tilt_deg']:6.2f}    {row['seconds_median']:9.2f}")
-    band = summary["network_diffuse_band"]
-    print(f"the network's diffuse band at its resolution against the truth's: slope {band['slope']:.3f}, "
-          f"correlation {band['correlation']:.3f}")
+    for name in ("diffuse", "normal"):
+        band = summary.get(f"network_{name}_band")
+        if band is None:
+            continue
+        print(f"the network's {name} band at its resolution against the truth's: slope {band['slope']:.3f}, "
+              f"correlation {band['correlation']:.3f}")
 
 
 def main() -> None:
@@ -437,6 +454,9 @@ def main() -> None:
                              "--jitter-seed): how far the result moves for a change far below the photo's 8-bit "
                              "steps; entry detail_photo_jitter_SEED")
     parser.add_argument("--jitter-seed", type=int, default=0, help="seed of --photo-jitter's noise")
+    parser.add_argument("--first-seed", type=int, default=HELD_OUT_SEED,
+                        help="first seed of the materials: another than the default gives a calibration set "
+                             "apart from the benchmark's; entry detail_seeds_FIRST")
     parser.add_argument("--no-relief-test", action="store_true",
                         help="capture with the normals' detail not scaled by the photo's relief share "
                              "(CaptureConfig.relief_test)")
@@ -459,7 +479,7 @@ def main() -> None:
     base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test)
     if args.refine_steps is not None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
-    chosen = materials(args.materials, args.flat)
+    chosen = materials(args.materials, args.flat, args.first_seed)
     offsets = evaluation_offsets(len(chosen), args.seed, fov)
     if args.visibility:
         key = "detail_visibility_swapped" if args.swap_reflectance else "detail_visibility"
@@ -539,8 +559,11 @@ def main() -> None:
     report = {"model": args.model or "shipped", "size": args.size, "low": args.low, "band": args.band,
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
               "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
-              "groups": groups, "per_material": records}
-    if args.photo_jitter > 0:
+              "first_seed": args.first_seed, "groups": groups, "per_material": records}
+    if args.first_seed != HELD_OUT_SEED:
+        write_section(args.output, f"detail_seeds_{args.first_seed}", f"detail --first-seed {args.first_seed}",
+                      report)
+    elif args.photo_jitter > 0:
         write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}",
                       f"detail --photo-jitter {args.photo_jitter:g} --jitter-seed {args.jitter_seed}", report)
     else:

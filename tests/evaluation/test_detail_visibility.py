@@ -59,3 +59,33 @@ def test_photo_jitter_is_a_seeded_relative_noise_of_the_asked_spread():
     assert torch.equal(first, detail.jittered(photos, 1e-3, seed=7))
     assert not torch.equal(first, detail.jittered(photos, 1e-3, seed=8))
     assert torch.equal(detail.jittered(photos, 0.0, seed=7), photos)
+
+
+def test_network_band_moments_give_slope_one_for_the_truth_and_a_half_for_half_its_band():
+    from types import SimpleNamespace
+
+    from mideepbasis.resampling import downsample
+
+    detail = benchmark_module("detail")
+    truth = matte_egg_crate(128, cycles=12, slope=0.15)
+    truth[:, constants.DIFFUSE] = torch.rand(1, 3, 128, 128, generator=torch.Generator().manual_seed(2))
+    low = downsample(truth, (32, 32))
+    halved = low.clone()
+    for channels in (slice(0, 2), constants.DIFFUSE):  # the normals' x and y, the diffuse: half their variation
+        mean = low[:, channels].mean(dim=(-2, -1), keepdim=True)
+        halved[:, channels] = mean + 0.5 * (low[:, channels] - mean)
+    for maps, slope in ((low, 1.0), (halved, 0.5)):
+        moments = detail.network_band_moments(SimpleNamespace(output=SimpleNamespace(maps=maps)), truth)
+        for name in ("diffuse", "normal"):
+            ratio = moments[name]["predicted_truth"] / moments[name]["truth_truth"]
+            assert abs(ratio - slope) < 1e-4, (name, ratio)
+
+
+def test_materials_from_another_first_seed_are_a_set_apart_of_the_same_kinds():
+    detail = benchmark_module("detail")
+    default = detail.materials(3, 1)
+    other = detail.materials(3, 1, first_seed=detail.HELD_OUT_SEED + 1000)
+    assert [m["seed"] for m in default[:3]] == [detail.HELD_OUT_SEED + i for i in range(3)]
+    assert [m["seed"] for m in other[:3]] == [detail.HELD_OUT_SEED + 1000 + i for i in range(3)]
+    assert [(m["kind"], m["family"]) for m in other] == [(m["kind"], m["family"]) for m in default]
+    assert not {m["seed"] for m in default} & {m["seed"] for m in other}
