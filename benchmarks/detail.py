@@ -10,7 +10,7 @@ lighting search adds noise, and refines as ``capture`` does (``--refine-steps`` 
 material is captured three ways:
 
 - ``upsampled 256``: the photo area-averaged to ``--low`` px and captured, the maps upsampled
-  bilinearly to ``--size`` (normals renormalised): today's answer made bigger;
+  bilinearly to ``--size`` (normals renormalised): the default capture's answer made bigger;
 - ``1024, no detail``: captured at full size with ``CaptureConfig.detail`` False;
 - ``1024, detail``: captured at full size with ``CaptureConfig.detail`` True.
 
@@ -230,8 +230,19 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
                 "slope": moments["predicted_truth"] / moments["truth_truth"],
                 "correlation": moments["predicted_truth"] / math.sqrt(moments["predicted_predicted"]
                                                                       * moments["truth_truth"])}
+    if truth_energy["normal"] > 0 and all("normal_detail" in r for r in records):
+        bands["normal_detail_bound"] = relief_test_bound(records)
     return {"materials": len(records), "truth_fine_tilt_deg": fine_tilt_deg(truth_energy["normal"] / len(records)),
             "rows": summary, **bands}
+
+
+def relief_test_bound(records: list[dict]) -> float:
+    """The normals' pooled detail ratio a detail step would give if it added each material's true
+    fine relief times the relief test's gain (``normal_detail``): ``sum g^2 E / sum E``, E the
+    truth's fine energy. A detail step that follows the relief test reaches more only by giving
+    some material more fine relief than its truth has."""
+    total = sum(r["truth_energy"]["normal"] for r in records)
+    return sum(r["normal_detail"] ** 2 * r["truth_energy"]["normal"] for r in records) / total
 
 
 #: Radius of the windows of ``window_explained``'s oracle filter [pixels at the capture's size].
@@ -425,6 +436,9 @@ def print_table(group: str, summary: dict) -> None:
               f"{rmse['specular']:7.4f} {row['render_rmse']:7.4f}   "
               + " ".join(number(row["detail"][name]) for name in MAPS)
               + f"   {row['fine_tilt_deg']:6.2f}    {row['seconds_median']:9.2f}")
+    if "normal_detail_bound" in summary:
+        print(f"detail n with each material's true fine relief times the relief test's gain: "
+              f"{summary['normal_detail_bound']:.3f}")
     for name in ("diffuse", "normal"):
         band = summary.get(f"network_{name}_band")
         if band is None:

@@ -89,3 +89,13 @@ def test_materials_from_another_first_seed_are_a_set_apart_of_the_same_kinds():
     assert [m["seed"] for m in other[:3]] == [detail.HELD_OUT_SEED + 1000 + i for i in range(3)]
     assert [(m["kind"], m["family"]) for m in other] == [(m["kind"], m["family"]) for m in default]
     assert not {m["seed"] for m in default} & {m["seed"] for m in other}
+
+
+def test_the_relief_test_bound_weighs_each_material_by_its_gain_squared_and_fine_energy():
+    detail = benchmark_module("detail")
+    records = [{"truth_energy": {"normal": 3.0}, "normal_detail": 1.0},
+               {"truth_energy": {"normal": 1.0}, "normal_detail": 0.5}]
+    assert abs(detail.relief_test_bound(records) - (3.0 + 0.25) / 4.0) < 1e-12
+    for record in records:
+        record["normal_detail"] = 1.0
+    assert detail.relief_test_bound(records) == 1.0
