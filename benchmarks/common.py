@@ -136,7 +136,7 @@ def run_generator_settings(path: Path) -> dict:
         raise SystemExit(f"{path}: its procedural settings are {procedural!r}, not a table of settings")
     from mideepbasis.configs import drop_removed_fields
 
-    try:  # a run of an earlier version may hold settings since removed, at their off values
+    try:  # a run's config may hold settings this version lacks, at their off values
         procedural = drop_removed_fields("GeneratorConfig", procedural, str(path))
     except ValueError as error:
         raise SystemExit(str(error))

@@ -215,7 +215,7 @@ def main() -> None:
     parser.add_argument("--synthesis-batches", type=int, default=6)
     parser.add_argument("--coverage-only", action="store_true", help="skip the speed measurements")
     parser.add_argument("--legacy-relief", action="store_true",
-                        help="coverage of the generator before relief scaling (bump_scale factor), for comparison")
+                        help="coverage of the generator without relief scaling (bump_scale factor), for comparison")
     parser.add_argument("--run-config", type=Path,
                         help="coverage of the generator as a training run drew it (the run's config.json)")
     parser.add_argument("-o", "--output", type=Path, default=RESULTS / "data.json")

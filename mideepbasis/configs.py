@@ -300,8 +300,8 @@ def differences(stored, current, ignore: set[str] | frozenset[str] = frozenset()
             if key not in ignore and a.get(key) != b.get(key)]
 
 
-#: Settings this version no longer has, by the config that had them, each with the value that
-#: turned it off. A stored config (a checkpoint's network, a run's settings) that holds one at that
+#: Settings a stored config may hold that this version lacks, by config, each with the value that
+#: turns it off. A stored config (a checkpoint's network, a run's settings) that holds one at that
 #: value reads as if it did not; another value is refused (``drop_removed_fields``).
 REMOVED_FIELDS: dict[str, dict[str, object]] = {
     # A second normal unit beside the first; the albedo shading as the normal unit's eighth input.
@@ -316,7 +316,7 @@ REMOVED_FIELDS: dict[str, dict[str, object]] = {
 
 def drop_removed_fields(kind: str, values: dict, source: str, error: type[Exception] = ValueError) -> dict:
     """A copy of a stored ``kind`` config's fields (``NetworkConfig``, ...) without those this
-    version no longer has (``REMOVED_FIELDS``), each of which must hold its off value (a list
+    version lacks (``REMOVED_FIELDS``), each of which must hold its off value (a list
     stored for a tuple counts as the tuple); another value raises ``error`` in one line that names
     the field and ``source`` (the file)."""
     kept = dict(values)

@@ -316,7 +316,7 @@ def _write_capture(result, staging: Path, exr: bool, environment: str, environme
 
     # The path tracing, the longest part, starts before every export: drjit lets go of the GIL
     # while it traces, and the maps' encoding and writing (PNG and EXR on their own threads)
-    # and the other files run beside it. At 1024 px the exports before it had delayed it by 0.9 s.
+    # and the other files run beside it. At 1024 px, exports run first would delay it by 0.9 s.
     with ThreadPoolExecutor(max_workers=1) as tracer, background_writes():
         traced = tracer.submit(path_trace)
         # The photo, the re-rendering and its error first, and the sheet's panels of them: then the

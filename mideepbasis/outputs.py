@@ -47,7 +47,7 @@ KILL_AT_ENV = "MIDEEPBASIS_KILL_AT"
 
 #: Names of what this module makes beside a target NAME, and may delete: staging and old folders
 #: (``.NAME.mideepbasis-new-PID``, ``-old-``), the writability probe (``-probe-``); and the staging
-#: folders of earlier versions (``.NAME.tmp-PID``). (The lock, ``.NAME.mideepbasis-lock``, is not
+#: folders that other versions name ``.NAME.tmp-PID``. (The lock, ``.NAME.mideepbasis-lock``, is not
 #: deleted by name: its holder removes it.)
 _BESIDE = re.compile(r"^\.(?P<name>.+)\.(?:mideepbasis-(?P<kind>new|old|probe)|tmp)-(?P<pid>\d+)$")
 

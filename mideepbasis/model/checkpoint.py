@@ -51,11 +51,11 @@ def network_config_to_dict(config: NetworkConfig) -> dict:
 
 
 def network_config_from_dict(values: dict, source: str = "checkpoint") -> NetworkConfig:
-    """The ``NetworkConfig`` a checkpoint stores. A setting this version no longer has
+    """The ``NetworkConfig`` a checkpoint stores. A stored setting this version lacks
     (``configs.REMOVED_FIELDS``) is dropped where it is off and refused otherwise."""
     fields = {f.name: f for f in dataclasses.fields(NetworkConfig)}
     values = drop_removed_fields("NetworkConfig", values, source, CheckpointError)
-    # Older checkpoints store the input width, which the optional inputs now determine.
+    # A checkpoint may store the input width, which the optional inputs determine.
     stored_inputs = values.pop("input_channels", None)
     unknown = sorted(set(values) - set(fields))
     if unknown:

@@ -77,8 +77,8 @@ class ModelInfo:
 
     @classmethod
     def from_document(cls, document: dict, config, source: str = "checkpoint") -> ModelInfo:
-        """The record of a checkpoint's JSON document and its network's ``NetworkConfig`` (older
-        checkpoints lack some keys: the defaults apply)."""
+        """The record of a checkpoint's JSON document and its network's ``NetworkConfig`` (a key
+        the document lacks takes its default)."""
         decoding = document.get("photo_decoding", "srgb")
         if decoding not in PHOTO_DECODINGS:
             raise InputError(f"{source}: unknown photo decoding {decoding!r}; expected one of {list(PHOTO_DECODINGS)}")

@@ -132,8 +132,9 @@ class NetworkConfig:
     """Add the normal unit's slope to each basis's normal made unit (the slope scaled by the length
     of global plus deviation before the sum is made unit), so that it tilts every basis as it tilts
     a flat unit normal: as the normal pool trains the unit (``train.losses.normals_over_flat``). False
-    (older checkpoints): added to the sum as it is, whose length the shipped local unit makes about
-    1.7 (its deviations' z saturates at +1), which weakens the unit's relief by as much."""
+    (also for a checkpoint that does not store it): added to the sum as it is, whose length the
+    shipped local unit makes about 1.7 (its deviations' z saturates at +1), which weakens the unit's
+    relief by as much."""
 
     error_map: str = field(default="clipped", metadata={"choices": ERROR_MAPS})
     """What the local unit's error map holds (``DeepBasisNet.error_map``): ``clipped``, the global
@@ -466,7 +467,7 @@ class DeepBasisOutput:
     def unsaturated(self, channels: slice = constants.REFLECTANCE) -> DeepBasisOutput:
         """This output with each basis's deviations of ``channels`` (default: the reflectance) cut
         to what its global basis leaves inside the signed space, deviation' = clamp(global +
-        deviation, -1, 1) - global: the same maps, but a change of a global basis now moves every
+        deviation, -1, 1) - global: the same maps, in which a change of a global basis moves every
         pixel where that basis weighs. The local unit often pushes a basis past a bound (its
         deviations saturate near +-1); there a change of the global basis moves nothing, so a
         refinement that may move only some of a basis's channels tints the specular

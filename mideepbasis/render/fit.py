@@ -235,7 +235,7 @@ _frozen_step = dr.freeze(_step)
 def _aligned(array) -> np.ndarray:
     """A float32 copy of ``array``, flat, its data on a 64-byte boundary. drjit records the frozen
     step again for each new pattern of aligned and unaligned inputs: numpy's own arrays, aligned by
-    chance, made a refinement record it anew now and then (9 recordings over 15 refinements, and
+    chance, make a refinement record it anew now and then (9 recordings over 15 refinements, and
     drjit's warning after 10), where aligned ones give the same two recordings to every refinement."""
     array = np.asarray(array, dtype=np.float32).reshape(-1)
     buffer = np.empty(array.size + 16, dtype=np.float32)

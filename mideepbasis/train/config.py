@@ -126,10 +126,11 @@ class TrainConfig:
 
     select_by: str = field(default="held_out", metadata={"choices": ("held_out", "run_generator")})
     """Which validation set keeps ``best.safetensors``. Each validation predicts two: ``held_out``,
-    materials of the generator as it was when the learning curve began (its figures compare across
-    all runs); ``run_generator``, as many materials drawn by this run's own generator
-    (``procedural``), which sees what a change of the training materials teaches (e.g. the broad
-    undulation of ``coarse_relief_tilt_deg``, which the first set lacks)."""
+    materials of the generator with the families' relief times a factor (``relief_tilt_deg`` None),
+    the same for every run (its figures compare across all runs); ``run_generator``, as many
+    materials drawn by this run's own generator (``procedural``), which sees what a change of the
+    training materials teaches (e.g. the broad undulation of ``coarse_relief_tilt_deg``, which the
+    first set lacks)."""
 
     train_only: tuple[str, ...] = ()
     """Train only these parts of the network (``TRAINABLE_PARTS``: e.g. ``normal_unit``); the
@@ -321,10 +322,10 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, values: dict, source: str = "checkpoint", network: dict | None = None) -> TrainConfig:
-        """The config a checkpoint stores. Older checkpoints store the network as overrides of its
+        """The config a checkpoint stores. A checkpoint may store the network as overrides of its
         preset and the synthesis as overrides of the defaults: the network is then the one the
-        checkpoint's weights were saved with (``network``, its document's), not today's preset.
-        Settings this version no longer has (``configs.REMOVED_FIELDS``), here or in the nested
+        checkpoint's weights were saved with (``network``, its document's), not this version's preset.
+        Stored settings this version lacks (``configs.REMOVED_FIELDS``), here or in the nested
         network and procedural settings, are dropped where they are off and refused otherwise."""
         from ..model.checkpoint import network_config_from_dict
 

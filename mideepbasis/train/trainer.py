@@ -523,8 +523,8 @@ class Trainer:
         if of not in self._validation_batches:
             from ..data.procedural import GeneratorConfig, generate
 
-            # held_out: the generator as it was when the learning curve began (relief by a factor,
-            # not scaled to a drawn tilt), so that the validations of every run compare.
+            # held_out: the generator with relief by a factor, not scaled to a drawn tilt, the same
+            # for every run, so that the validations of every run compare.
             config = (GeneratorConfig(size=self.config.size, relief_tilt_deg=None) if of == "held_out"
                       else self.config.procedural)
             maps = torch.stack([generate(VALIDATION_SEED + i, config=config).to_tensor()

@@ -68,7 +68,7 @@ class GeneratorConfig:
 
     coarse_relief_tilt_deg: tuple[float, float] | None = None
     """Range (log-uniform) of the mean tilt [deg] of a broad undulation added under the relief, with
-    chance ``coarse_relief_probability`` (None: none, the materials as before): bumps of 1/2 to
+    chance ``coarse_relief_probability`` (None: none, the families' relief alone): bumps of 1/2 to
     1/16 of the sample (power-law noise of 1 - 8 cycles), independent of the colours. The
     families' relief, scaled to a mean tilt, is mostly fine: features under 1/16 of the sample
     carry the normal's x and y at 0.036 RMS in the coarse band of 48 materials, against 0.089 in
@@ -139,8 +139,8 @@ def generate_surface(seed: int, config: GeneratorConfig = GeneratorConfig(),
         tilt = canvas.loguniform(*config.coarse_relief_tilt_deg)
         height = height + undulation * relief_factor(undulation, tilt, config.tileable, max_factor=1e4)
         provenance["coarse_relief_tilt_deg"] = tilt
-    # Two draws where a removed low-relief chance and a removed relief-inversion chance were drawn
-    # (always off): what is drawn after them, and so every seed's material, stays as it was.
+    # Two draws that nothing uses, in the places of a low-relief chance and a relief-inversion chance
+    # (both off): they keep what is drawn after them, and so every seed's material, fixed across versions.
     canvas.rng.random()
     canvas.rng.random()
     # The marginals' shifts come last, for the same reason, and leave the relief as it is.
