@@ -39,8 +39,8 @@ refinement's spread on glossy materials rather than the resolution. Entry
 ``detail_photo_jitter_SEED``.
 
 ``--first-seed N`` takes the materials from seed N on instead of the benchmark's: a set apart
-from it to calibrate the detail step's constants on (``detail.NORMAL_GAIN``). Entry
-``detail_seeds_N``.
+from it to calibrate the detail step's constants on (``detail.DIFFUSE_GAIN``, the relief test's
+thresholds). Entry ``detail_seeds_N``; ``--visibility``'s entries end in ``_seeds_N``.
 
 ``--registration DIR`` measures instead how much of a calibrated real scene's fine detail (its
 photo 00's contrast above the band) the other photos show where it is (``registration``): the
@@ -182,7 +182,7 @@ def network_band_moments(result, truth: torch.Tensor) -> dict:
     the detail step's gains are fitted in), the truth area-averaged to the network's size, keyed
     ``diffuse`` and ``normal`` (its x and y). Pooled over a group, ``predicted_truth /
     truth_truth`` is the slope of the network's band on the truth's (1: as strong as the truth's;
-    the detail step's gains inherit it: ``detail.DIFFUSE_GAIN``, ``detail.NORMAL_GAIN``)."""
+    the detail step's gains inherit it: ``detail.DIFFUSE_GAIN`` makes up the diffuse's)."""
     from mideepbasis.capturing.detail import LOW_SIGMA
     from mideepbasis.resampling import gaussian_blur
 
@@ -222,18 +222,18 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
                        for name in MAPS},
             "fine_tilt_deg": fine_tilt_deg(energy["normal"] / len(records)),
             "seconds_median": float(np.median([row["seconds"] for row in rows]))}
-    bands = {}
+    extras = {}
     for name in ("diffuse", "normal"):
         moments = {key: sum(r["network_band"][name][key] for r in records) for key in records[0]["network_band"][name]}
         if moments["truth_truth"] > 0:  # a flat textured group's normals have no band
-            bands[f"network_{name}_band"] = {
+            extras[f"network_{name}_band"] = {
                 "slope": moments["predicted_truth"] / moments["truth_truth"],
                 "correlation": moments["predicted_truth"] / math.sqrt(moments["predicted_predicted"]
                                                                       * moments["truth_truth"])}
     if truth_energy["normal"] > 0 and all("normal_detail" in r for r in records):
-        bands["normal_detail_bound"] = relief_test_bound(records)
+        extras["normal_detail_bound"] = relief_test_bound(records)
     return {"materials": len(records), "truth_fine_tilt_deg": fine_tilt_deg(truth_energy["normal"] / len(records)),
-            "rows": summary, **bands}
+            "rows": summary, **extras}
 
 
 def relief_test_bound(records: list[dict]) -> float:
@@ -497,8 +497,10 @@ def main() -> None:
     offsets = evaluation_offsets(len(chosen), args.seed, fov)
     if args.visibility:
         key = "detail_visibility_swapped" if args.swap_reflectance else "detail_visibility"
-        write_section(args.output, key, f"detail --visibility{' --swap-reflectance' * args.swap_reflectance}",
-                      visibility_report(chosen, offsets, args, convention, extent))
+        command = f"detail --visibility{' --swap-reflectance' * args.swap_reflectance}"
+        if args.first_seed != HELD_OUT_SEED:
+            key, command = f"{key}_seeds_{args.first_seed}", f"{command} --first-seed {args.first_seed}"
+        write_section(args.output, key, command, visibility_report(chosen, offsets, args, convention, extent))
         return
     labels = row_labels(args.size, args.low)
     capturers = {labels[0]: Capturer(model, replace(base, resolution=args.low, detail=False)),
