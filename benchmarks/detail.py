@@ -40,7 +40,7 @@ refinement's spread on glossy materials rather than the resolution. Entry
 
 ``--first-seed N`` takes the materials from seed N on instead of the benchmark's: a set apart
 from it to calibrate the detail step's constants on (``detail.DIFFUSE_GAIN``, the relief test's
-thresholds). Entry ``detail_seeds_N``; ``--visibility``'s entries end in ``_seeds_N``.
+thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_seeds_N`` too.
 
 ``--registration DIR`` measures instead how much of a calibrated real scene's fine detail (its
 photo 00's contrast above the band) the other photos show where it is (``registration``): the
@@ -495,12 +495,15 @@ def main() -> None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
     chosen = materials(args.materials, args.flat, args.first_seed)
     offsets = evaluation_offsets(len(chosen), args.seed, fov)
+    # Another set of materials than the benchmark's writes entries of its own, whatever else is asked.
+    other_set = args.first_seed != HELD_OUT_SEED
+    key_suffix = f"_seeds_{args.first_seed}" if other_set else ""
+    command_suffix = f" --first-seed {args.first_seed}" if other_set else ""
     if args.visibility:
         key = "detail_visibility_swapped" if args.swap_reflectance else "detail_visibility"
-        command = f"detail --visibility{' --swap-reflectance' * args.swap_reflectance}"
-        if args.first_seed != HELD_OUT_SEED:
-            key, command = f"{key}_seeds_{args.first_seed}", f"{command} --first-seed {args.first_seed}"
-        write_section(args.output, key, command, visibility_report(chosen, offsets, args, convention, extent))
+        write_section(args.output, key + key_suffix,
+                      f"detail --visibility{' --swap-reflectance' * args.swap_reflectance}{command_suffix}",
+                      visibility_report(chosen, offsets, args, convention, extent))
         return
     labels = row_labels(args.size, args.low)
     capturers = {labels[0]: Capturer(model, replace(base, resolution=args.low, detail=False)),
@@ -576,14 +579,12 @@ def main() -> None:
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
               "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
               "first_seed": args.first_seed, "groups": groups, "per_material": records}
-    if args.first_seed != HELD_OUT_SEED:
-        write_section(args.output, f"detail_seeds_{args.first_seed}", f"detail --first-seed {args.first_seed}",
+    if args.photo_jitter > 0:
+        write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}{key_suffix}",
+                      f"detail --photo-jitter {args.photo_jitter:g} --jitter-seed {args.jitter_seed}{command_suffix}",
                       report)
-    elif args.photo_jitter > 0:
-        write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}",
-                      f"detail --photo-jitter {args.photo_jitter:g} --jitter-seed {args.jitter_seed}", report)
     else:
-        write_section(args.output, "detail", "detail", report)
+        write_section(args.output, f"detail{key_suffix}", f"detail{command_suffix}", report)
     if sheet_rows:
         write_sheet(args.sheet, sheet_rows)
 
