@@ -71,8 +71,9 @@ class CaptureConfig:
     relief_test: bool = True
     """Scale the detail step's finer relief by how much of the photo's fine contrast is shading
     (``detail.photo_relief_gain``, from 4 times the network's resolution on): an albedo's texture
-    (veined marble, grained wood) then adds no relief. False: the normals keep the gains fitted
-    against the network's relief, whatever the photo."""
+    (veined marble, grained wood) then adds no relief, and the diffuse takes the contrast read as
+    albedo as albedo (``detail.add_detail``'s ``albedo_share``). False: the normals and the diffuse
+    keep the gains fitted against the network's maps, whatever the photo."""
 
     grey_specular: bool = False
     """Keep the specular's colour only in proportion to each pixel's metallic share (``Material.to_pbr``'s
@@ -214,7 +215,8 @@ class Prediction:
 
     normal_detail: float = 1.0
     """The share of the normals' detail above the network's resolution kept
-    (``detail.relief_gain``): 0 where the photo's fine contrast reads as albedo alone."""
+    (``detail.relief_gain``): 0 where the photo's fine contrast reads as albedo alone. The rest is
+    the share the diffuse takes as albedo (``detail.add_detail``'s ``albedo_share``)."""
 
     @functools.cached_property
     def maps(self) -> torch.Tensor:
@@ -224,7 +226,7 @@ class Prediction:
             from .detail import add_detail
 
             maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps,
-                              normal_gain=self.normal_detail)
+                              normal_gain=self.normal_detail, albedo_share=1.0 - self.normal_detail)
         finishing = self.grey_specular or self.normal_strength != 1.0 or self.specular_floor > 0.0
         if finishing and maps is self.output.maps:
             maps = maps.clone()  # the output's own maps stay as the network gave them

@@ -87,8 +87,9 @@ class EvaluationConfig:
     (``CaptureConfig.detail``)."""
 
     relief_test: bool | None = None
-    """Scale the detail step's finer relief by the photo's relief share, as ``capture`` does from 4
-    times the network's resolution on (``CaptureConfig.relief_test``; None: capture's default)."""
+    """Scale the detail step's finer relief by the photo's relief share, and give the diffuse the
+    rest as albedo, as ``capture`` does from 4 times the network's resolution on
+    (``CaptureConfig.relief_test``; None: capture's default)."""
 
     grey_specular: bool | None = None
     """Make the specular grey but for each pixel's metallic share, as ``capture --grey-specular``

@@ -180,6 +180,26 @@ def test_normal_gain_zero_leaves_the_normals_upsampled_and_the_rest_as_with_gain
     assert torch.equal(none[:, constants.REFLECTANCE], whole[:, constants.REFLECTANCE])
 
 
+def test_contrast_read_as_albedo_gives_the_diffuse_the_albedos_fine_energy_whatever_the_networks_band():
+    albedo, photo = textured_scene(2)
+    # A network whose diffuse band is far weaker than the truth's: the fitted gains under-read it.
+    low, maps = upsampled_answer(albedo, band_slope=0.4)
+
+    def fine_diffuse(albedo_share: float) -> torch.Tensor:
+        return detail.add_detail(maps.clone(), photo, low, albedo_share=albedo_share)[:, constants.DIFFUSE]
+
+    truth_energy = float(high_band(albedo).square().sum())
+    fitted, as_albedo = fine_diffuse(0.0), fine_diffuse(1.0)
+    low_ratio, high_ratio = TOLERANCES["energy_ratio"]
+    assert float(high_band(fitted).square().sum()) / truth_energy < low_ratio
+    assert low_ratio <= float(high_band(as_albedo).square().sum()) / truth_energy <= high_ratio
+    error = lambda m: float((m - albedo).square().mean().sqrt())  # noqa: E731
+    assert error(as_albedo) < error(fitted)
+    # Halfway is halfway between the two gains: the fine band is linear in them (no clip here).
+    halfway = fine_diffuse(0.5)
+    assert torch.allclose(high_band(halfway), (high_band(fitted) + high_band(as_albedo)) / 2, atol=1e-4)
+
+
 def _plain_grain(size: int) -> torch.Tensor:
     """(1, 10, size, size) flat and matte, its albedo a straight grain (24 cycles across)."""
     import math
