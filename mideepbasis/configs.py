@@ -325,6 +325,6 @@ def drop_removed_fields(kind: str, values: dict, source: str, error: type[Except
             continue
         value = kept.pop(name)
         if (tuple(value) if isinstance(value, list) else value) != off:
-            raise error(f"{source}: uses {name} = {value!r}, which this version no longer has "
+            raise error(f"{source}: uses {name} = {value!r}, a setting this version does not have "
                         f"(it reads only {off!r}, the setting's off value)")
     return kept

@@ -152,9 +152,9 @@ def test_a_network_setting_since_removed_loads_where_off_and_is_refused_otherwis
     with pytest.raises(CheckpointError) as error:
         load_model(boosted)
     message = str(error.value)
-    assert message == (f"{boosted}: uses normal_booster_width = 16, which this version no longer has "
+    assert message == (f"{boosted}: uses normal_booster_width = 16, a setting this version does not have "
                        "(it reads only 0, the setting's off value)")
-    with pytest.raises(CheckpointError, match="^m: uses normal_unit_albedo = True, which this version no longer has"):
+    with pytest.raises(CheckpointError, match="^m: uses normal_unit_albedo = True, a setting this version does not have"):
         network_config_from_dict({**stored, "normal_unit_albedo": True}, "m")
 
 
