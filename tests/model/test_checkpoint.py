@@ -31,7 +31,10 @@ def test_round_trip_gives_the_same_network(saved):
     inputs = torch.rand(1, 9, 32, 32) * 2 - 1
     lights = geometry.light_positions(torch.zeros(1, 2))
     with torch.no_grad():
-        assert torch.equal(model(inputs, lights).maps, loaded(inputs, lights).maps)
+        # Not bit for bit: on an Intel Xeon (AVX-512, AMX) two passes of one network differ now and
+        # then by up to about 4e-6 (the convolution kernels' order of sums varies); the weights
+        # themselves are compared bit for bit in the next test.
+        torch.testing.assert_close(model(inputs, lights).maps, loaded(inputs, lights).maps, rtol=0.0, atol=1e-4)
     document, _ = read_checkpoint(path)
     assert document["convention"] == "physical" and document["training"]["data"] == ["procedural"]
     assert document["network"]["num_bases"] == 4
