@@ -247,6 +247,30 @@ def write_report_sheet(folder: Path, sheet: ReportSheet, environment: np.ndarray
     return write_image(Path(folder) / "report.png", sheet.with_environment(environment))
 
 
+def detail_summary(capture: dict) -> str | None:
+    """What the maps hold above the network's resolution, in words, from a capture's provenance
+    (``capture``: ``network_size``, ``detail_added``, ``relief_test_read``, ``normal_detail``);
+    None for a provenance without them."""
+    from .capturing.detail import RELIEF_MIN_FACTOR
+
+    if "network_size" not in capture:
+        return None
+    network_size = max(capture["network_size"])
+    if not capture.get("detail_added"):
+        return f"none: the maps hold the network's {network_size} px answer"
+    if not capture.get("relief_test_read"):
+        return (f"the photo's, by the gains fitted at {network_size} px (the relief test reads photos of "
+                f"{RELIEF_MIN_FACTOR * network_size} px and more)")
+    kept = float(capture.get("normal_detail", 1.0))
+    if kept >= 0.995:
+        return "the photo's; the relief test read its fine contrast as shading: the normals keep all of their detail"
+    if kept <= 0.005:
+        return ("the photo's; the relief test read its fine contrast as albedo: no relief in the normals, the "
+                "diffuse takes it as albedo")
+    return (f"the photo's; the relief test kept {kept:.0%} of the normals' detail, and the diffuse took the other "
+            f"{1.0 - kept:.0%} of the fine contrast as albedo")
+
+
 def write_report_page(result, folder: Path, rerender_rmse: float) -> Path:
     """``report.html`` in ``folder`` around its ``report.png``: the summary, the notes, the images
     and the relighting viewer (which embeds the map files: write them first). Returns report.png's path."""
@@ -255,7 +279,9 @@ def write_report_page(result, folder: Path, rerender_rmse: float) -> Path:
             "flash offset [deg]": f"{result.offset_angle_deg:.2f} ({'searched' if result.searched else 'given'})",
             "field of view [deg]": f"{result.fov:.1f} ({result.fov_source})",
             "re-rendering RMSE (linear)": f"{rerender_rmse:.4f}",
+            "detail above the network's resolution": detail_summary(result.material.provenance.get("capture", {})),
             **{f"time: {stage} [s]": f"{seconds:.2f}" for stage, seconds in result.timings.items()}}
+    rows = {key: value for key, value in rows.items() if value is not None}
     notes = "".join(f"<li>{html.escape(note)}</li>" for note in result.notes) or "<li>none</li>"
     names = ("photo", "normal", "diffuse", "roughness", "specular", "rerender", "error", "environment",
              "preview_sphere", "preview_cloth")

@@ -181,12 +181,18 @@ RELIEF_MIN_FACTOR = 4
 MATTE_POWER = 4
 
 
+def relief_test_reads(photo_size: tuple[int, int], low_size: tuple[int, int]) -> bool:
+    """Whether ``photo_relief_gain`` reads a photo of ``photo_size`` (H, W) against maps of
+    ``low_size`` (h, w): from ``RELIEF_MIN_FACTOR`` times their size on."""
+    return min(photo_size[0] / low_size[0], photo_size[1] / low_size[1]) >= RELIEF_MIN_FACTOR
+
+
 def photo_relief_gain(photo: torch.Tensor, light: torch.Tensor, low_maps: torch.Tensor, fov: float, convention: str,
                       extent: float = 1.0) -> float:
     """``relief_gain`` of a photo (3, H, W) taken with the flash at ``light`` (3,), the diffuse's
     share of it from the network's maps ``low_maps`` (1, 10, h, w) (``matte_share``); 1 for a
-    photo less than ``RELIEF_MIN_FACTOR`` times the maps' size."""
-    if min(photo.shape[-2] / low_maps.shape[-2], photo.shape[-1] / low_maps.shape[-1]) < RELIEF_MIN_FACTOR:
+    photo the test does not read (``relief_test_reads``)."""
+    if not relief_test_reads(tuple(photo.shape[-2:]), tuple(low_maps.shape[-2:])):
         return 1.0
     matte = matte_share(low_maps[:1].detach().cpu(), light.cpu(), fov, convention, extent)
     share = relief_share(photo.cpu(), light.cpu(), tuple(low_maps.shape[-2:]), extent, matte=matte**MATTE_POWER)

@@ -27,7 +27,7 @@ from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
 from ..model.symmetry import check_symmetries, parse_symmetries
-from .detail import photo_relief_gain
+from .detail import photo_relief_gain, relief_test_reads
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -218,6 +218,10 @@ class Prediction:
     (``detail.relief_gain``): 0 where the photo's fine contrast reads as albedo alone. The rest is
     the share the diffuse takes as albedo (``detail.add_detail``'s ``albedo_share``)."""
 
+    relief_test_read: bool = False
+    """Whether the relief test read the photo (``detail.relief_test_reads``; ``normal_detail`` is
+    1 where it did not)."""
+
     @functools.cached_property
     def maps(self) -> torch.Tensor:
         """(B, 10, H, W) the maps at the photo's size."""
@@ -381,12 +385,13 @@ class Capturer:
             output = output.unsaturated()
         output = output.with_shrunk_deviations(constants.LOBE, self.config.lobe_variation)
         detailed = self.config.detail and prediction.size[0] > output.maps.shape[-2]
+        tested = (detailed and self.config.relief_test
+                  and relief_test_reads(tuple(photo.pixels.shape[-2:]), tuple(output.maps.shape[-2:])))
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
-                       normal_strength=self.config.normal_strength,
+                       normal_strength=self.config.normal_strength, relief_test_read=tested,
                        normal_detail=photo_relief_gain(photo.pixels, light, output.maps, photo.fov, self.convention,
-                                                       self.model.config.plane_extent)
-                       if detailed and self.config.relief_test else 1.0)
+                                                       self.model.config.plane_extent) if tested else 1.0)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""
@@ -451,6 +456,9 @@ class Capturer:
                                                                 "searched": config.light is None,
                                                                 "refine_steps": config.refine.steps,
                                                                 "tileable": config.tileable,
+                                                                "network_size": list(prediction.output.maps.shape[-2:]),
+                                                                "detail_added": prediction.detail_from is not None,
+                                                                "relief_test_read": prediction.relief_test_read,
                                                                 "normal_detail": prediction.normal_detail}})
         return CaptureResult(material=material, photo=photo.pixels, offset=offset, fov=photo.fov,
                              fov_source=photo.fov_source, searched=config.light is None, search_history=history,

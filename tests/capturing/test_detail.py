@@ -232,5 +232,20 @@ def test_capture_records_the_normals_detail_it_kept_and_relief_test_false_keeps_
     for test in (True, False):
         config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW, symmetries=1,
                                refine=RefineConfig(steps=0), relief_test=test)
-        kept[test] = Capturer(tiny_checkpoint, config).capture(photo).material.provenance["capture"]["normal_detail"]
-    assert kept == {True: 0.0, False: 1.0}
+        provenance = Capturer(tiny_checkpoint, config).capture(photo).material.provenance["capture"]
+        kept[test] = provenance["normal_detail"], provenance["relief_test_read"], provenance["detail_added"]
+        assert provenance["network_size"] == [LOW, LOW]
+    assert kept == {True: (0.0, True, True), False: (1.0, False, True)}
+
+
+def test_the_report_says_what_the_detail_step_did():
+    from mideepbasis.reporting import detail_summary
+
+    base = {"network_size": [128, 128], "detail_added": True, "relief_test_read": True}
+    assert detail_summary({**base, "detail_added": False}) == "none: the maps hold the network's 128 px answer"
+    assert "reads photos of 512 px and more" in detail_summary({**base, "relief_test_read": False, "normal_detail": 1.0})
+    assert "all of their detail" in detail_summary({**base, "normal_detail": 1.0})
+    assert "no relief in the normals" in detail_summary({**base, "normal_detail": 0.0})
+    assert "kept 34% of the normals' detail" in detail_summary({**base, "normal_detail": 0.34})
+    assert "other 66%" in detail_summary({**base, "normal_detail": 0.34})
+    assert detail_summary({"offset": [0.0, 0.0]}) is None  # a provenance that does not say
