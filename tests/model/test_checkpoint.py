@@ -136,7 +136,7 @@ def test_the_shipped_model_predicts_as_it_did():
             assert sums == pytest.approx(expected, rel=1e-5), symmetries
 
 
-def test_a_network_setting_since_removed_loads_where_off_and_is_refused_otherwise(saved, tmp_path):
+def test_a_network_setting_this_version_lacks_loads_where_off_and_is_refused_otherwise(saved, tmp_path):
     from mideepbasis.configs import REMOVED_FIELDS
     from mideepbasis.model.checkpoint import network_config_from_dict, network_config_to_dict
 

@@ -1,5 +1,5 @@
 """Training settings: stored resolved, checked on resume (by the API and the command line), those
-since removed read where off; a run's start from another network's weights (``--init``)."""
+this version lacks read where off; a run's start from another network's weights (``--init``)."""
 
 from __future__ import annotations
 
@@ -105,8 +105,8 @@ def test_training_materials_follow_the_runs_procedural_settings(tmp_path):
     assert TrainConfig.from_dict(stored).procedural == GeneratorConfig(size=32)
 
 
-def test_a_stored_setting_this_version_no_longer_has_is_dropped_where_off_and_refused_otherwise(tmp_path):
-    """Checkpoints and runs of earlier versions store settings since removed (``configs.REMOVED_FIELDS``):
+def test_a_stored_setting_this_version_lacks_is_dropped_where_off_and_refused_otherwise(tmp_path):
+    """Checkpoints and runs of earlier versions store settings this version lacks (``configs.REMOVED_FIELDS``):
     at their off value they read as if absent; at another value the error names them, in one line."""
     from mideepbasis.configs import REMOVED_FIELDS
     from mideepbasis.errors import InputError
@@ -136,7 +136,7 @@ def test_a_stored_setting_this_version_no_longer_has_is_dropped_where_off_and_re
         TrainConfig.from_dict({**earlier, "network": {"normal_booster_width": 16}})
 
 
-def test_a_checkpoint_written_with_settings_since_removed_resumes(tmp_path):
+def test_a_checkpoint_with_settings_this_version_lacks_resumes(tmp_path):
     """A run's checkpoint as an earlier version wrote it (the removed settings at their off values,
     in its network and in its run's settings) resumes, and ends as a run straight through does."""
     from safetensors import safe_open
