@@ -157,7 +157,8 @@ def test_a_network_setting_this_version_lacks_loads_where_off_and_is_refused_oth
     message = str(error.value)
     assert message == (f"{boosted}: uses normal_booster_width = 16, a setting this version does not have "
                        "(it reads only 0, the setting's off value)")
-    with pytest.raises(CheckpointError, match="^m: uses normal_unit_albedo = True, a setting this version does not have"):
+    with pytest.raises(CheckpointError,
+                       match="^m: uses normal_unit_albedo = True, a setting this version does not have"):
         network_config_from_dict({**stored, "normal_unit_albedo": True}, "m")
 
 
