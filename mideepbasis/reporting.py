@@ -262,13 +262,16 @@ def detail_summary(capture: dict) -> str | None:
         return (f"the photo's, by the gains fitted at {network_size} px (the relief test reads photos of "
                 f"{RELIEF_MIN_FACTOR * network_size} px and more)")
     kept = float(capture.get("normal_detail", 1.0))
-    if kept >= 0.995:
-        return "the photo's; the relief test read its fine contrast as shading: the normals keep all of their detail"
     if kept <= 0.005:
         return ("the photo's; the relief test read its fine contrast as albedo: no relief in the normals, the "
                 "diffuse takes it as albedo")
+    # The diffuse's fitted gains follow the network's diffuse, which carries some of a relief's shading.
+    shading = "the diffuse's fitted gains carry some of the shading too"
+    if kept >= 0.995:
+        return ("the photo's; the relief test read its fine contrast as shading: the normals keep all of their "
+                f"detail; {shading}")
     return (f"the photo's; the relief test kept {kept:.0%} of the normals' detail, and the diffuse took the other "
-            f"{1.0 - kept:.0%} of the fine contrast as albedo")
+            f"{1.0 - kept:.0%} of the fine contrast as albedo; {shading}")
 
 
 def write_report_page(result, folder: Path, rerender_rmse: float) -> Path:

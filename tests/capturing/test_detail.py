@@ -246,6 +246,8 @@ def test_the_report_says_what_the_detail_step_did():
     untested = detail_summary({**base, "relief_test_read": False, "normal_detail": 1.0})
     assert "reads photos of 512 px and more" in untested
     assert "all of their detail" in detail_summary({**base, "normal_detail": 1.0})
+    assert "carry some of the shading" in detail_summary({**base, "normal_detail": 0.34})
+    assert "shading" not in detail_summary({**base, "normal_detail": 0.0}).split("albedo:")[1]
     assert "no relief in the normals" in detail_summary({**base, "normal_detail": 0.0})
     assert "kept 34% of the normals' detail" in detail_summary({**base, "normal_detail": 0.34})
     assert "other 66%" in detail_summary({**base, "normal_detail": 0.34})
