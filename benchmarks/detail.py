@@ -19,7 +19,9 @@ under ``--lights`` of ``evaluate``'s seeded lights and views (clipped sRGB, ``re
 detail: each map's energy above the 128-px band over the truth's (``high_band_energy``: energy,
 so twice the amplitude reads 4), pooled over a group as the sum of the energies over the sum of the
 truth's (near-constant true maps would make a mean of ratios blow up); per material in the JSON.
-1.0 is right, near 0 the blur of a 128-px answer, above 1 invented detail.
+1.0 is right, near 0 the blur of a 128-px answer, above 1 invented detail. Beside it, the
+detail's correlation with the truth's (``fine_cross``, pooled as the ratio): the share of it that
+is the truth's; made-up detail of the right energy reads about 0.
 
 Two groups, reported apart: ``relief`` (the families' materials as generated) and ``flat
 textured`` (stone of veined or grained variants and wood, the same generator's materials with
@@ -205,9 +207,18 @@ def fine_tilt_deg(normal_energy: float) -> float:
     return math.degrees(math.sqrt(max(normal_energy, 0.0)))
 
 
+def fine_cross(maps: torch.Tensor, truth: torch.Tensor, band: int) -> dict[str, float]:
+    """Per map, the mean over pixels of the product of the maps' band above ``band`` px and the
+    truth's (``above_band``), summed over the map's channels: with ``high_band_energy`` of both,
+    the pooled correlation of the detail with the truth's."""
+    return {name: float((above_band(maps[:, channels], band) * above_band(truth[:, channels], band))
+                        .mean(dim=(2, 3)).sum()) for name, channels in constants.MAP_SLICES.items()}
+
+
 def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
     """A group: its size, the truth's fine tilt, and per row the mean map RMSE and re-rendering
-    RMSE, the pooled detail ratio, the normals' fine tilt (the group's mean energy as a tilt,
+    RMSE, the pooled detail ratio, the pooled correlation of the detail with the truth's (its share
+    that is the truth's, not made up: ``fine_cross``), the normals' fine tilt (the group's mean energy as a tilt,
     ``fine_tilt_deg``: what a flat material's ratio cannot show), the median seconds a capture
     (the first material's include the warm-up)."""
     truth_energy = {name: sum(r["truth_energy"][name] for r in records) for name in MAPS}
@@ -220,6 +231,9 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
             "render_rmse": float(np.mean([row["render_rmse"] for row in rows])),
             "detail": {name: finite(energy[name] / truth_energy[name]) if truth_energy[name] > 0 else None
                        for name in MAPS},
+            "detail_correlation": {
+                name: finite(sum(row["cross"][name] for row in rows) / math.sqrt(energy[name] * truth_energy[name]))
+                if energy[name] > 0 and truth_energy[name] > 0 else None for name in MAPS},
             "fine_tilt_deg": fine_tilt_deg(energy["normal"] / len(records)),
             "seconds_median": float(np.median([row["seconds"] for row in rows]))}
     extras = {}
@@ -436,6 +450,9 @@ def print_table(group: str, summary: dict) -> None:
               f"{rmse['specular']:7.4f} {row['render_rmse']:7.4f}   "
               + " ".join(number(row["detail"][name]) for name in MAPS)
               + f"   {row['fine_tilt_deg']:6.2f}    {row['seconds_median']:9.2f}")
+    print("the detail's correlation with the truth's (n / d), per row: " + "; ".join(
+        f"{label} " + " / ".join(number(row["detail_correlation"][name]).strip() for name in ("normal", "diffuse"))
+        for label, row in summary["rows"].items()))
     if "normal_detail_bound" in summary:
         print(f"detail n with each material's true fine relief times the relief test's gain: "
               f"{summary['normal_detail_bound']:.3f}")
@@ -544,12 +561,14 @@ def main() -> None:
             with torch.no_grad():
                 render_rmse = float(((rerender(maps, lights, views, convention) - truth_renders) ** 2).mean().sqrt())
                 energy = high_band_energy(maps, args.band)
+                cross = fine_cross(maps, truth, args.band)
             rmse = map_rmse(maps, truth)
             record["rows"][label] = {
                 "maps_rmse": {name: float(value[0]) for name, value in rmse.items()}, "render_rmse": render_rmse,
                 "energy": {name: float(value[0]) for name, value in energy.items()},
                 "detail": {name: finite(float(energy[name][0] / truth_energy[name][0]))
                            if float(truth_energy[name][0]) > 0 else None for name in MAPS},
+                "cross": cross,
                 "seconds": seconds}
             if tiles is not None and label != labels[1]:
                 diffuse, normal = sheet_tiles(maps)

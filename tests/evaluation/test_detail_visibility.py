@@ -4,7 +4,7 @@ photo as the first-order shading ``(l_xy / l_z) . dn_xy``, with slope 1."""
 import torch
 
 from mideepbasis import constants
-from mideepbasis.evaluation import flash_photos
+from mideepbasis.evaluation import flash_photos, high_band_energy
 
 from ..helpers import benchmark_module, matte_egg_crate
 
@@ -99,3 +99,22 @@ def test_the_relief_test_bound_weighs_each_material_by_its_gain_squared_and_fine
     for record in records:
         record["normal_detail"] = 1.0
     assert detail.relief_test_bound(records) == 1.0
+
+
+def test_the_details_correlation_tells_the_truths_detail_from_made_up_detail_of_the_same_energy():
+    detail = benchmark_module("detail")
+    band = 16  # both reliefs' cycles (24 and 31 across) lie far above it
+    truth = matte_egg_crate(256, cycles=24, slope=0.15)
+    made_up = matte_egg_crate(256, cycles=31, slope=0.15)  # a relief of the same slopes elsewhere
+
+    def energy(maps: torch.Tensor) -> float:
+        return float(high_band_energy(maps, band)["normal"][0])
+
+    def correlation(maps: torch.Tensor) -> float:
+        return detail.fine_cross(maps, truth, band)["normal"] / (energy(maps) * energy(truth)) ** 0.5
+
+    assert abs(correlation(truth) - 1.0) < 1e-6
+    assert abs(correlation(-truth) + 1.0) < 1e-6  # the relief turned inside out: every slope wrong
+    # About the same fine energy, none of it where the truth's is.
+    assert abs(energy(made_up) / energy(truth) - 1.0) < 0.1
+    assert abs(correlation(made_up)) < 0.1
