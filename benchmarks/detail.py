@@ -43,6 +43,7 @@ refinement's spread on glossy materials rather than the resolution. Entry
 ``--first-seed N`` takes the materials from seed N on instead of the benchmark's: a set apart
 from it to calibrate the detail step's constants on (``detail.DIFFUSE_GAIN``, the relief test's
 thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_seeds_N`` too.
+``--no-relief-test`` captures without the relief test: its entries end in ``_no_relief_test``.
 
 ``--registration DIR`` measures instead how much of a calibrated real scene's fine detail (its
 photo 00's contrast above the band) the other photos show where it is (``registration``): the
@@ -516,6 +517,9 @@ def main() -> None:
     other_set = args.first_seed != HELD_OUT_SEED
     key_suffix = f"_seeds_{args.first_seed}" if other_set else ""
     command_suffix = f" --first-seed {args.first_seed}" if other_set else ""
+    # Nor does a capture without the relief test overwrite the default's entry.
+    key_suffix += "_no_relief_test" if args.no_relief_test else ""
+    command_suffix += " --no-relief-test" if args.no_relief_test else ""
     if args.visibility:
         key = "detail_visibility_swapped" if args.swap_reflectance else "detail_visibility"
         write_section(args.output, key + key_suffix,

@@ -26,7 +26,9 @@ needs no network: shading's gradients turn with the direction to the flash, an a
 ``relief_gain``): a veined marble or a grained wood gets no relief from its texture.
 Where that test reads the fine contrast as albedo, the diffuse takes it as albedo: on a flat
 surface the photo's relative contrast is the albedo's, so the diffuse's gains move, by the share
-read as albedo (``albedo_share``), from the fitted ones toward the network's diffuse itself.
+read as albedo (``albedo_share``), from the fitted ones toward the network's diffuse itself. And
+the network's own normals, where they follow that contrast just below its resolution, hold relief
+made up from the albedo: that share of their band, as the fitted gains explain it, is taken out.
 """
 
 from __future__ import annotations
@@ -210,13 +212,21 @@ def _box(image: torch.Tensor, radius: int) -> torch.Tensor:
     return F.avg_pool2d(padded, 2 * radius + 1, stride=1)
 
 
-def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = WINDOW, eps: float = EPS,
-                 sigma: float = LOW_SIGMA, normal_gain: float = 1.0, albedo_share: float = 0.0) -> torch.Tensor:
+def band_contrast(low_photo: torch.Tensor, sigma: float = LOW_SIGMA) -> torch.Tensor:
+    """(B, 3, h, w) linear -> (B, 10, h, w): for each map channel, its guide's contrast
+    ``(I - blur(I)) / blur(I)`` above a Gaussian blur of ``sigma`` pixels (``GUIDE_OF_CHANNEL``)."""
+    guides = _guides(low_photo.float())
+    base = gaussian_blur(guides, sigma, padding="replicate")
+    return ((guides - base) / base.clamp(min=DARKEST))[:, list(GUIDE_OF_CHANNEL)]
+
+
+def detail_gains(low_maps: torch.Tensor, contrast: torch.Tensor, window: int = WINDOW, eps: float = EPS,
+                 sigma: float = LOW_SIGMA, albedo_share: float = 0.0) -> torch.Tensor:
     """The gains of each map channel on the photo's contrast at the network's resolution.
 
     Args:
-        low_maps: (B, 10, h, w) the network's maps; low_photo: (B, 3, h, w) linear;
-        normal_gain: the normals' gains' factor (``relief_gain``);
+        low_maps: (B, 10, h, w) the network's maps; contrast: (B, 10, h, w) the photo's at their
+            size (``band_contrast`` of the same ``sigma``);
         albedo_share: the share of the photo's fine contrast read as albedo, in [0, 1]: the
             diffuse's gains are ``(1 - albedo_share)`` times the fitted ones plus ``albedo_share``
             times the network's diffuse (an albedo's relative contrast is the photo's).
@@ -224,15 +234,11 @@ def detail_gains(low_maps: torch.Tensor, low_photo: torch.Tensor, window: int = 
     Returns:
         (B, 10, h, w) gains [map units per unit of contrast], ``GAIN_OF_CHANNEL`` applied.
     """
-    guides = _guides(low_photo.float())
-    base = gaussian_blur(guides, sigma, padding="replicate")
-    contrast = ((guides - base) / base.clamp(min=DARKEST))[:, list(GUIDE_OF_CHANNEL)]
     band = low_maps.float() - gaussian_blur(low_maps.float(), sigma, padding="replicate")
     mean_guide, mean_band = _box(contrast, window), _box(band, window)
     covariance = _box(contrast * band, window) - mean_guide * mean_band
     variance = (_box(contrast * contrast, window) - mean_guide**2).clamp(min=0.0)
     strength = torch.tensor(GAIN_OF_CHANNEL, dtype=torch.float32).view(1, -1, 1, 1)
-    strength[:, constants.NORMAL] *= normal_gain
     gains = _box(covariance / (variance + eps), window) * strength
     if albedo_share > 0.0:
         gains[:, constants.DIFFUSE] = ((1.0 - albedo_share) * gains[:, constants.DIFFUSE]
@@ -250,8 +256,10 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
         low_maps: (B, 10, h, w) the network's maps at its own resolution (h < H).
         normal_gain: the share of the normals' detail kept (``relief_gain``): 0 where the photo's
             fine contrast reads as albedo alone.
-        albedo_share: the share of the photo's fine contrast the diffuse takes as albedo
-            (``detail_gains``); capture passes ``1 - normal_gain``.
+        albedo_share: the share of the photo's fine contrast read as albedo: the diffuse takes it
+            as albedo (``detail_gains``), and the network's normals lose that share of their band
+            that follows the photo's contrast (relief made up from the albedo); capture passes
+            ``1 - normal_gain``.
 
     Returns:
         (B, 10, H, W).
@@ -262,7 +270,12 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
         return maps
     with torch.no_grad():
         low_photo = downsample(photo.float(), low_size)
-        gains = detail_gains(low_maps, low_photo, normal_gain=normal_gain, albedo_share=albedo_share)
+        low_contrast = band_contrast(low_photo)
+        gains = detail_gains(low_maps, low_contrast, albedo_share=albedo_share)
+        # Where the contrast reads as albedo, what of the network's normals follows it is relief made
+        # up from the albedo: it goes with what the detail holds below the network's resolution.
+        made_up = albedo_share * gains[:, constants.NORMAL] * low_contrast[:, constants.NORMAL]
+        gains[:, constants.NORMAL] *= normal_gain
         low_guides = _guides(low_photo)
         factor = height // low_size[0]
         banded = (exact_in_bands(low_size[0], height) and low_size[1] * factor == width)
@@ -283,6 +296,7 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             maps[..., start:stop, :] += added
             below[..., start // factor:-(-stop // factor), :] = downsample(
                 added, (-(-stop // factor) - start // factor, low_size[1]))
+        below[:, constants.NORMAL] += made_up
         for start in range(0, height, rows):
             stop = min(height, start + rows)
             band = maps[..., start:stop, :]

@@ -71,9 +71,10 @@ class CaptureConfig:
     relief_test: bool = True
     """Scale the detail step's finer relief by how much of the photo's fine contrast is shading
     (``detail.photo_relief_gain``, from 4 times the network's resolution on): an albedo's texture
-    (veined marble, grained wood) then adds no relief, and the diffuse takes the contrast read as
-    albedo as albedo (``detail.add_detail``'s ``albedo_share``). False: the normals and the diffuse
-    keep the gains fitted against the network's maps, whatever the photo."""
+    (veined marble, grained wood) then adds no relief, the diffuse takes the contrast read as
+    albedo as albedo, and the network's normals lose the relief they made up from it
+    (``detail.add_detail``'s ``albedo_share``). False: the normals and the diffuse keep the gains
+    fitted against the network's maps, whatever the photo."""
 
     grey_specular: bool = False
     """Keep the specular's colour only in proportion to each pixel's metallic share (``Material.to_pbr``'s

@@ -15,7 +15,8 @@ from ..helpers import matte_egg_crate
 
 #: What the tests ask: high-band energy of the detailed diffuse against the truth's, and how much of
 #: the upsampled answer's error the detail removes.
-TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "flat_normal": 1e-3}
+TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "flat_normal": 1e-3,
+              "made_up_band_left": 0.85}
 
 SIZE, LOW = 256, 32
 
@@ -198,6 +199,27 @@ def test_contrast_read_as_albedo_gives_the_diffuse_the_albedos_fine_energy_whate
     # Halfway is halfway between the two gains: the fine band is linear in them (no clip here).
     halfway = fine_diffuse(0.5)
     assert torch.allclose(high_band(halfway), (high_band(fitted) + high_band(as_albedo)) / 2, atol=1e-4)
+
+
+def test_contrast_read_as_albedo_takes_the_relief_the_network_made_up_from_it_out_of_the_normals():
+    albedo, photo = textured_scene()
+    low, _ = upsampled_answer(albedo)
+    low[:, 0:2] = 0.2 * (low[:, constants.DIFFUSE][:, 0:2] - 0.4)  # flat truth, normals that follow its albedo
+    low[:, constants.NORMAL] = low[:, constants.NORMAL] / low[:, constants.NORMAL].norm(dim=1, keepdim=True)
+    maps = upsample_bilinear(low, SIZE, SIZE)
+    maps[:, constants.NORMAL] = maps[:, constants.NORMAL] / maps[:, constants.NORMAL].norm(dim=1, keepdim=True)
+
+    def tilt(normals: torch.Tensor) -> float:  # RMS slope against the true flat normal
+        return float(normals[:, 0:2].square().mean().sqrt())
+
+    def band_tilt(normals: torch.Tensor) -> float:  # the same, of the band the detail step fits in
+        slopes = normals[:, 0:2]
+        smooth = gaussian_blur(downsample(slopes, LOW), detail.LOW_SIGMA, padding="replicate")
+        return tilt(slopes - upsample_bilinear(smooth, SIZE, SIZE))
+
+    as_albedo = detail.add_detail(maps.clone(), photo, low, normal_gain=0.0, albedo_share=1.0)[:, constants.NORMAL]
+    assert tilt(as_albedo) < tilt(maps[:, constants.NORMAL])
+    assert band_tilt(as_albedo) < TOLERANCES["made_up_band_left"] * band_tilt(maps[:, constants.NORMAL])
 
 
 def _plain_grain(size: int) -> torch.Tensor:
