@@ -212,10 +212,10 @@ def _box(image: torch.Tensor, radius: int) -> torch.Tensor:
     return F.avg_pool2d(padded, 2 * radius + 1, stride=1)
 
 
-def band_contrast(low_photo: torch.Tensor, sigma: float = LOW_SIGMA) -> torch.Tensor:
-    """(B, 3, h, w) linear -> (B, 10, h, w): for each map channel, its guide's contrast
-    ``(I - blur(I)) / blur(I)`` above a Gaussian blur of ``sigma`` pixels (``GUIDE_OF_CHANNEL``)."""
-    guides = _guides(low_photo.float())
+def band_contrast(guides: torch.Tensor, sigma: float = LOW_SIGMA) -> torch.Tensor:
+    """(B, 4, h, w) the photo's guides (``_guides``) -> (B, 10, h, w): for each map channel, its
+    guide's contrast ``(I - blur(I)) / blur(I)`` above a Gaussian blur of ``sigma`` pixels
+    (``GUIDE_OF_CHANNEL``)."""
     base = gaussian_blur(guides, sigma, padding="replicate")
     return ((guides - base) / base.clamp(min=DARKEST))[:, list(GUIDE_OF_CHANNEL)]
 
@@ -269,14 +269,13 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
     if low_size[0] >= height:
         return maps
     with torch.no_grad():
-        low_photo = downsample(photo.float(), low_size)
-        low_contrast = band_contrast(low_photo)
+        low_guides = _guides(downsample(photo.float(), low_size))
+        low_contrast = band_contrast(low_guides)
         gains = detail_gains(low_maps, low_contrast, albedo_share=albedo_share)
         # Where the contrast reads as albedo, what of the network's normals follows it is relief made
         # up from the albedo: it goes with what the detail holds below the network's resolution.
         made_up = albedo_share * gains[:, constants.NORMAL] * low_contrast[:, constants.NORMAL]
         gains[:, constants.NORMAL] *= normal_gain
-        low_guides = _guides(low_photo)
         factor = height // low_size[0]
         banded = (exact_in_bands(low_size[0], height) and low_size[1] * factor == width)
         rows = max(factor, BAND_PIXELS // width // factor * factor) if banded else height
