@@ -21,7 +21,9 @@ so twice the amplitude reads 4), pooled over a group as the sum of the energies 
 truth's (near-constant true maps would make a mean of ratios blow up); per material in the JSON.
 1.0 is right, near 0 the blur of a 128-px answer, above 1 invented detail. Beside it, the
 detail's correlation with the truth's (``fine_cross``, pooled as the ratio): the share of it that
-is the truth's; made-up detail of the right energy reads about 0.
+is the truth's; made-up detail of the right energy reads about 0. And a bound: the map RMSE of
+the upsampled answer with its band above the 128-px band replaced by the truth's
+(``with_true_detail``, key ``true_detail_rmse``), the least a detail step could reach.
 
 Two groups, reported apart: ``relief`` (the families' materials as generated) and ``flat
 textured`` (stone of veined or grained variants and wood, the same generator's materials with
@@ -216,6 +218,17 @@ def fine_cross(maps: torch.Tensor, truth: torch.Tensor, band: int) -> dict[str, 
                         .mean(dim=(2, 3)).sum()) for name, channels in constants.MAP_SLICES.items()}
 
 
+def with_true_detail(maps: torch.Tensor, truth: torch.Tensor, band: int) -> torch.Tensor:
+    """``maps`` (B, 10, H, W) with their band above ``band`` px replaced by the truth's
+    (``above_band``), the normals renormalised and the other maps clipped to [0, 1]: what a perfect
+    detail step would make of them, their answer below the band kept."""
+    from mideepbasis.geometry import unit_vectors
+
+    combined = maps - above_band(maps, band) + above_band(truth, band)
+    return torch.cat([unit_vectors(combined[:, constants.NORMAL], dim=1),
+                      combined[:, constants.REFLECTANCE].clamp(0.0, 1.0)], dim=1)
+
+
 def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
     """A group: its size, the truth's fine tilt, and per row the mean map RMSE and re-rendering
     RMSE, the pooled detail ratio, the pooled correlation of the detail with the truth's (its share
@@ -245,6 +258,9 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
                 "slope": moments["predicted_truth"] / moments["truth_truth"],
                 "correlation": moments["predicted_truth"] / math.sqrt(moments["predicted_predicted"]
                                                                       * moments["truth_truth"])}
+    if all("true_detail_rmse" in r for r in records):
+        extras["true_detail_rmse"] = {name: float(np.mean([r["true_detail_rmse"][name] for r in records]))
+                                      for name in MAPS}
     if truth_energy["normal"] > 0 and all("normal_detail" in r for r in records):
         extras["normal_detail_bound"] = relief_test_bound(records)
     return {"materials": len(records), "truth_fine_tilt_deg": fine_tilt_deg(truth_energy["normal"] / len(records)),
@@ -454,6 +470,10 @@ def print_table(group: str, summary: dict) -> None:
     print("the detail's correlation with the truth's (n / d), per row: " + "; ".join(
         f"{label} " + " / ".join(number(row["detail_correlation"][name]).strip() for name in ("normal", "diffuse"))
         for label, row in summary["rows"].items()))
+    if "true_detail_rmse" in summary:
+        bound = summary["true_detail_rmse"]
+        print(f"{'upsampled, true detail':22s} " + " ".join(f"{bound[name]:7.4f}" for name in MAPS)
+              + "   (the upsampled maps with the truth's band above the detail band: a bound)")
     if "normal_detail_bound" in summary:
         print(f"detail n with each material's true fine relief times the relief test's gain: "
               f"{summary['normal_detail_bound']:.3f}")
@@ -567,6 +587,9 @@ def main() -> None:
                 energy = high_band_energy(maps, args.band)
                 cross = fine_cross(maps, truth, args.band)
             rmse = map_rmse(maps, truth)
+            if label == labels[0]:
+                record["true_detail_rmse"] = {name: float(value[0]) for name, value in
+                                              map_rmse(with_true_detail(maps, truth, args.band), truth).items()}
             record["rows"][label] = {
                 "maps_rmse": {name: float(value[0]) for name, value in rmse.items()}, "render_rmse": render_rmse,
                 "energy": {name: float(value[0]) for name, value in energy.items()},

@@ -118,3 +118,23 @@ def test_the_details_correlation_tells_the_truths_detail_from_made_up_detail_of_
     # About the same fine energy, none of it where the truth's is.
     assert abs(energy(made_up) / energy(truth) - 1.0) < 0.1
     assert abs(correlation(made_up)) < 0.1
+
+
+def test_the_true_detail_bound_keeps_the_answer_below_the_band_and_takes_the_truths_above_it():
+    detail = benchmark_module("detail")
+    band = 16  # blocks of 8 px: whole cycles of the relief's 8 px period, so its band below is flat
+    truth = matte_egg_crate(128, cycles=16, slope=0.15)
+    truth[:, constants.DIFFUSE] = 0.5 + 0.2 * truth[:, 0:1]  # an albedo that follows the relief
+    # A blurred answer with a wrong level: 0.05 darker, the relief made flat.
+    answer = truth.clone()
+    answer[:, constants.NORMAL] = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+    answer[:, constants.DIFFUSE] = 0.45
+    bounded = detail.with_true_detail(answer, truth, band)
+    # The diffuse: the answer's level with the truth's texture above the band, so an error of 0.05 alone.
+    assert torch.allclose(bounded[:, constants.DIFFUSE] - truth[:, constants.DIFFUSE],
+                          torch.full_like(truth[:, constants.DIFFUSE], -0.05), atol=1e-5)
+    # The normals: unit, and the truth's own where the answer below the band is the truth's (flat).
+    assert torch.allclose(bounded[:, constants.NORMAL].norm(dim=1), torch.ones(1, 128, 128), atol=1e-5)
+    assert float((bounded[:, constants.NORMAL] - truth[:, constants.NORMAL]).abs().max()) < 0.02
+    # The truth gives itself back.
+    assert torch.allclose(detail.with_true_detail(truth, truth, band), truth, atol=1e-5)
