@@ -9,8 +9,8 @@ threads; for the commands, their processes') [s]:
 
 - ``known_light``: prediction with the flash offset given (no search, no refinement);
 - ``search``: lighting search and prediction;
-- ``search_refine``: lighting search, prediction and the default refinement (125 steps, normals kept);
-- ``search_refine_paper``: the same with the paper's refinement (500 steps, normals refined too);
+- ``search_refine``: lighting search, prediction and the default refinement (250 steps along the cosine, normals kept);
+- ``search_refine_paper``: the same with the paper's refinement (500 steps at one rate, normals refined too);
 - ``command``: the whole ``mideepbasis capture`` command, start-up and all outputs included;
   ``command_paper`` with the paper's refinement, ``command_1024`` and ``command_2048`` with the
   photo processed at that resolution (the capture targets are for these whole commands),
@@ -50,14 +50,16 @@ TARGETS_S = {"known_light": 0.5, "search": 1.0, "search_refine": 1.2, "search_re
              "command_4096": 80.0, "command_no_shapes": 3.0}
 
 #: Whole ``mideepbasis capture`` commands timed from outside: name -> options.
-COMMANDS = {"command": (), "command_paper": ("--refine-steps", "500", "--refine-normals"),
+COMMANDS = {"command": (), "command_paper": ("--refine-steps", "500", "--refine-normals", "--refine-lr", "0.01",
+                                             "--refine-lr-schedule", "constant"),
             "command_1024": ("--resolution", "1024"), "command_2048": ("--resolution", "2048"),
             "command_4096": ("--resolution", "4096"), "command_no_shapes": ("--no-shape-previews",)}
 CONFIGURATIONS = {
     "known_light": {"light": (0.25, -0.17), "refine": {"steps": 0}, "resolution": 256},
     "search": {"light": None, "refine": {"steps": 0}, "resolution": 256},
     "search_refine": {"light": None, "resolution": 256},
-    "search_refine_paper": {"light": None, "refine": {"steps": 500, "normals": True}, "resolution": 256},
+    "search_refine_paper": {"light": None, "resolution": 256,
+                            "refine": {"steps": 500, "normals": True, "lr": 0.01, "lr_schedule": "constant"}},
     "search_refine_1024": {"light": None, "resolution": 1024},
 }
 

@@ -4,10 +4,11 @@
 
 Every ``--every``-th of the 84 shared materials is re-rendered under its seeded hand-held offset
 (the offsets of ``mideepbasis evaluate``), the model predicts once with the offset known, and each
-variant refines that one prediction: no refinement, all channels (the paper), all channels with a
-pull toward the network's bases, and d, r, s only (normals kept), at the given step count (the
-paper's 500) and at a half and a quarter of it. Reported per variant: map RMSE (stored encoding),
-re-rendering RMSE under the 30 random lights and views of ``evaluate``, the mean L1 between the
+variant refines that one prediction: no refinement, all channels (the paper: Adam at a constant
+rate of 0.01), all channels with a pull toward the network's bases, and d, r, s only (normals kept,
+capture's cosine schedule), at the given step count (the paper's 500) and at a half (capture's
+default) and a quarter of it, and a quarter at one rate. Reported per variant: map RMSE (stored
+encoding), re-rendering RMSE under the 30 random lights and views of ``evaluate``, the mean L1 between the
 photo and the material rendered under the photo's flash (what the refinement minimises), and the
 seconds per material. Writes benchmarks/results/refinement.json.
 """
@@ -34,14 +35,16 @@ from mideepbasis.render import render_flash
 def variants(steps: int) -> dict[str, RefineConfig]:
     """Name -> refinement settings (steps 0: the network's prediction as is); the rest as capture's defaults."""
     half, quarter = steps // 2, steps // 4
+    constant = {"lr": 0.01, "lr_schedule": "constant"}  # Adam at one rate, as the paper's
     return {
         "none": RefineConfig(steps=0),
-        f"all channels, {steps} steps (paper)": RefineConfig(steps=steps, normals=True),
-        f"all channels + prior 0.1, {steps} steps": RefineConfig(steps=steps, normals=True, prior=0.1),
+        f"all channels, {steps} steps (paper)": RefineConfig(steps=steps, normals=True, **constant),
+        f"all channels + prior 0.1, {steps} steps": RefineConfig(steps=steps, normals=True, prior=0.1, **constant),
         f"d, r, s only, {steps} steps": RefineConfig(steps=steps),
         f"d, r, s only, {half} steps": RefineConfig(steps=half),
         f"d, r, s only, {quarter} steps": RefineConfig(steps=quarter),
-        f"d, r, s only, {quarter} steps, clamped": RefineConfig(steps=quarter, unclamped_moves=False),
+        f"d, r, s only, {quarter} steps at one rate": RefineConfig(steps=quarter, **constant),
+        f"d, r, s only, {half} steps, clamped": RefineConfig(steps=half, unclamped_moves=False),
         f"d, r, s only + prior 0.1, {half} steps": RefineConfig(steps=half, prior=0.1),
     }
 

@@ -27,6 +27,7 @@ from mideepbasis.evaluation.real import CAPTURE_ROW, UNREFINED_ROW, run_real_eva
 #: The variants: RefineConfig fields changed from capture's default.
 VARIANTS = {
     "default": {},
+    "constant": {"steps": 125, "lr_schedule": "constant"},
     "clamped": {"unclamped_moves": False},
     "clamped_achromatic": {"unclamped_moves": False, "achromatic_specular": True},
     "skip_clipped": {"skip_clipped": True},

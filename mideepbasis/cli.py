@@ -1,6 +1,6 @@
 """The ``mideepbasis`` command. Thin: parse arguments, call the library, print one line per error.
 
-    mideepbasis capture PHOTO [PHOTO ...] -o OUT [--fov DEG] [--light TX,TY] [--refine-steps 125]
+    mideepbasis capture PHOTO [PHOTO ...] -o OUT [--fov DEG] [--light TX,TY] [--refine-steps 250]
                         [--refine-normals] [--resolution N|native] [--model PATH] [--exr] [--overwrite]
                         [--workers N] [every other CaptureConfig field: --search-grid, --refine-lr, ...]
     mideepbasis render MATERIAL_DIR -o OUT.exr [--light flash|env] [--fov 45] [--offset TX,TY]

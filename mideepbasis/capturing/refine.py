@@ -4,7 +4,7 @@ Only the N global bases move: Adam on the L1 difference between the photo and th
 blended material (rendered through the plugin); the weights and local deviations stay fixed. It
 runs on a downsampled copy: the global bases are a few numbers, and the photo's large-scale
 appearance determines them. With the Mitsuba backend the loop runs on the drjit side, each step
-one frozen drjit function (``render.fit``: 0.3 s for the default 125 steps where the torch loop,
+one frozen drjit function (``render.fit``: 0.3 s for 125 steps where the torch loop,
 crossing the bridge at every step, took 0.8 - 0.9 s; with the normals kept, as by default, the
 steps blend and differentiate the other seven channels alone: 0.44 -> 0.28 s on two AVX2 cores);
 with the torch backend, in torch (``_fit_torch``, also the reference of the drjit loop).
@@ -15,6 +15,7 @@ Shapes: photo (3, H, W) linear; light (3,) [patch half-widths]; global bases (1,
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -28,19 +29,28 @@ from ..model.network import DeepBasisOutput, blend, compose_bases, to_maps
 from ..resampling import downsample
 
 
+#: The refinement's learning-rate schedules (``RefineConfig.lr_schedule``, ``step_rates``).
+LR_SCHEDULES = ("cosine", "constant")
+
+
 @dataclass(frozen=True)
 class RefineConfig:
     """How the global bases are refined."""
 
-    steps: int = 125
-    """Adam steps; 0 turns refinement off. (The paper: 500; with the normals kept, 125 did as well
-    here: benchmarks/refinement.py.)"""
+    steps: int = 250
+    """Adam steps; 0 turns refinement off. (The paper: 500 at one rate; with the normals kept, 125 at
+    one rate did as well here, and 250 along the cosine move the bases as far: benchmarks/refinement.py.)"""
 
     resolution: int = field(default=64, metadata={"parse": positive_int})
     """Resolution of the refinement's renders [pixels]."""
 
     lr: float = 0.01
-    """Adam learning rate [signed-space units per step]."""
+    """Adam's learning rate at the first step [signed-space units per step]."""
+
+    lr_schedule: str = field(default="cosine", metadata={"choices": LR_SCHEDULES})
+    """How the rate changes over the steps (``step_rates``): ``cosine`` lowers it to 0 along half a
+    cosine so that the bases settle, ``constant`` keeps it (its last steps still move the bases by
+    about the rate: benchmarks/README.md, refinement)."""
 
     normals: bool = False
     """Whether the refinement may turn the global bases' normals, as the paper's does. Off by
@@ -74,10 +84,22 @@ class RefineConfig:
     specular (``benchmarks/README.md``, refinement_real)."""
 
     def __post_init__(self):
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule: unknown schedule {self.lr_schedule!r}; expected one of "
+                             f"{', '.join(LR_SCHEDULES)}")
         unknown = [name for name in self.moving_maps if name not in ("diffuse", "roughness", "specular")]
         if unknown:
             raise ValueError(f"moving_maps: unknown maps {unknown}; expected some of diffuse, roughness, specular "
                              "(the normals move with normals)")
+
+
+def step_rates(lr: float, steps: int, schedule: str = "cosine") -> list[float]:
+    """Adam's learning rate at each of ``steps`` steps: ``lr`` throughout (``constant``), or from
+    ``lr`` down along half a cosine, ``lr (1 + cos(pi k / steps)) / 2`` at step k = 0, 1, ...
+    (``cosine``: the last step's rate is about ``lr (pi / steps)^2 / 4``)."""
+    if schedule == "constant":
+        return [lr] * steps
+    return [lr * 0.5 * (1.0 + math.cos(math.pi * k / steps)) for k in range(steps)]
 
 
 #: Linear photo values at or above this are clipped (``RefineConfig.skip_clipped``).
@@ -246,7 +268,8 @@ def _fit_drjit(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
     bar = (lambda steps: tqdm(steps, desc="refining", unit="step")) if progress else None
     refined, losses = fit_global_bases(weights[0].numpy(), deviations[0].numpy(), predicted[0].numpy(), movable.numpy(),
                                        target[0].numpy(), light.numpy(), geometry.flash_intensity(fov, convention),
-                                       convention, extent, config.steps, config.lr, config.prior, progress=bar,
+                                       convention, extent, step_rates(config.lr, config.steps, config.lr_schedule),
+                                       config.prior, progress=bar,
                                        pixel_weights=pixel_weights[0].numpy(), tied=tied.numpy(),
                                        encoded_loss=config.encoded_loss, bound=basis_bound(config),
                                        normal_strength=normal_strength)
@@ -282,6 +305,7 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
             bases = (current[:, :, constants.REFLECTANCE, None, None] + reflectance).clamp(-1.0, 1.0)
             return torch.cat([normals, blend(weights, bases)], dim=1)
 
+    rates = step_rates(config.lr, config.steps, config.lr_schedule)
     optimizer = SmallAdam(global_bases, lr=config.lr)
     bound = basis_bound(config)
     compared = encoded(target) if config.encoded_loss else target
@@ -290,7 +314,8 @@ def _fit_torch(weights: torch.Tensor, deviations: torch.Tensor, predicted: torch
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        for _ in tqdm(range(config.steps), desc="refining", unit="step", disable=not progress):
+        for step in tqdm(range(config.steps), desc="refining", unit="step", disable=not progress):
+            optimizer.lr = rates[step]
             current = masked(global_bases)
             maps = to_maps(blended(current))
             if normal_strength != 1.0:

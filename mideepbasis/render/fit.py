@@ -30,6 +30,7 @@ the crossing for renders inside torch's autograd).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import drjit as dr
@@ -75,7 +76,7 @@ class FitInputs:
     """1: the flash intensity (``geometry.flash_intensity``)."""
 
     lr: mi.Float
-    """1: Adam's learning rate."""
+    """1: Adam's learning rate at the step."""
 
     bound: mi.Float
     """1: the largest magnitude of a global basis value (``RefineConfig.unclamped_moves``: 2)."""
@@ -247,7 +248,7 @@ def _aligned(array) -> np.ndarray:
 
 def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.ndarray, movable: np.ndarray,
                      target: np.ndarray, light: np.ndarray, intensity: float, convention: str, extent: float,
-                     steps: int, lr: float, prior: float, progress=None,
+                     rates: Sequence[float], prior: float, progress=None,
                      every_channel: bool = False, pixel_weights: np.ndarray | None = None,
                      tied: np.ndarray | None = None, encoded_loss: bool = False,
                      bound: float = 1.0, normal_strength: float = 1.0) -> tuple[np.ndarray, list[float]]:
@@ -257,8 +258,9 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
         weights: (N, r, r); deviations: (N, 10, r, r) signed space; predicted: (N, 10) the
             network's global bases; movable: (10,) 1 where a channel may move; target: (3, r, r)
             linear; light: (3,) [patch half-widths]; intensity: the flash's; convention, extent:
-            the shading convention and the sample's half-width [patch half-widths]; steps, lr,
-            prior: as ``RefineConfig``; progress: wraps the range of steps (e.g. ``tqdm``), which
+            the shading convention and the sample's half-width [patch half-widths]; rates: Adam's
+            learning rate at each step, one per step (``refine.step_rates``); prior: as
+            ``RefineConfig``; progress: wraps the range of steps (e.g. ``tqdm``), which
             then advances as the steps are computed (``PROGRESS_SYNC_STEPS``);
             every_channel: blend and differentiate all ten channels at every step even where the
             normals stay (the quicker path's reference in the tests); pixel_weights: (r, r) each
@@ -280,7 +282,8 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
                      predicted=as_float(predicted), movable=as_float(np.tile(movable, bases)),
                      target=mi.Color3f(*[as_float(channel) for channel in target]),
                      light=mi.Point3f(*[float(x) for x in np.asarray(light).reshape(3)]),
-                     intensity=mi.Float(float(intensity)), lr=mi.Float(float(lr)), bound=mi.Float(float(bound)),
+                     intensity=mi.Float(float(intensity)), lr=mi.Float(float(rates[0]) if len(rates) else 0.0),
+                     bound=mi.Float(float(bound)),
                      prior=mi.Float(float(prior)), normal_strength=mi.Float(float(normal_strength)),
                      normal=dr.zeros(mi.Vector3f, 1),
                      pixel_weights=as_float(np.ones((size, size)) if pixel_weights is None else pixel_weights),
@@ -301,7 +304,10 @@ def fit_global_bases(weights: np.ndarray, deviations: np.ndarray, predicted: np.
     # the step's own, and the first refinement in a process would fail to record.
     flash_renderer(convention)
     losses = []
-    for step in (progress or (lambda steps: steps))(range(1, steps + 1)):
+    for step in (progress or (lambda steps: steps))(range(1, len(rates) + 1)):
+        if step > 1 and rates[step - 1] != rates[step - 2]:
+            data.lr = mi.Float(float(rates[step - 1]))
+            dr.make_opaque(data.lr)  # an input of the recording, not a literal: no new recording
         free, first_moment, second_moment, loss = _frozen_step(free, first_moment, second_moment, mi.Float(step),
                                                                 data, bases, size, convention, float(extent),
                                                                 normals_move, encoded_loss)

@@ -93,7 +93,7 @@ def test_evaluation_under_environments_writes_its_rows_and_counts_a_corrupt_mate
     for name in ("uniform", "studio"):
         entry = written["env"][name]
         assert set(entry["noise_floor"]) == {"rmse", "flip", "ssim"}
-        assert set(entry["rows"]) == {"model (no refinement)", "model + refinement (125 steps, normals kept)",
+        assert set(entry["rows"]) == {"model (no refinement)", "model + refinement (250 steps, normals kept)",
                                       "trivial"}
         for metric in ("rmse", "flip", "ssim"):
             assert entry[metric] == entry["rows"]["model (no refinement)"][metric]
