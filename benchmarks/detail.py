@@ -222,10 +222,8 @@ def with_true_detail(maps: torch.Tensor, truth: torch.Tensor, band: int) -> torc
     """``maps`` (B, 10, H, W) with their band above ``band`` px replaced by the truth's
     (``above_band``), the normals renormalised and the other maps clipped to [0, 1]: what a perfect
     detail step would make of them, their answer below the band kept."""
-    from mideepbasis.geometry import unit_vectors
-
     combined = maps - above_band(maps, band) + above_band(truth, band)
-    return torch.cat([unit_vectors(combined[:, constants.NORMAL], dim=1),
+    return torch.cat([geometry.unit_vectors(combined[:, constants.NORMAL], dim=1),
                       combined[:, constants.REFLECTANCE].clamp(0.0, 1.0)], dim=1)
 
 
