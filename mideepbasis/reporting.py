@@ -249,8 +249,8 @@ def write_report_sheet(folder: Path, sheet: ReportSheet, environment: np.ndarray
 
 def detail_summary(capture: dict) -> str | None:
     """What the maps hold above the network's resolution, in words, from a capture's provenance
-    (``capture``: ``network_size``, ``detail_added``, ``relief_test_read``, ``normal_detail``);
-    None for a provenance without them."""
+    (``capture``: ``network_size``, ``detail_added``, ``relief_test_read``, ``normal_detail``,
+    ``fine_relief``); None for a provenance without them."""
     from .capturing.detail import RELIEF_MIN_FACTOR
 
     if "network_size" not in capture:
@@ -267,6 +267,8 @@ def detail_summary(capture: dict) -> str | None:
                 "diffuse takes it as albedo")
     # The diffuse's fitted gains follow the network's diffuse, which carries some of a relief's shading.
     shading = "the diffuse's fitted gains carry some of the shading too"
+    if capture.get("fine_relief"):
+        shading += "; the normals' detail is the relief the network's normal unit reads in the photo (--fine-relief)"
     if kept >= 0.995:
         return ("the photo's; the relief test read its fine contrast as shading: the normals keep all of their "
                 f"detail; {shading}")

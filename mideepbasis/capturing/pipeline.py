@@ -27,7 +27,7 @@ from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
 from ..model.symmetry import check_symmetries, parse_symmetries
-from .detail import photo_relief_gain, relief_test_reads
+from .detail import fine_relief, photo_relief_gain, relief_test_reads
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -75,6 +75,14 @@ class CaptureConfig:
     albedo as albedo, and the network's normals lose the relief they made up from it
     (``detail.add_detail``'s ``albedo_share``). False: the normals and the diffuse keep the gains
     fitted against the network's maps, whatever the photo."""
+
+    fine_relief: bool = False
+    """From 4 times the network's resolution on, read the normals' detail above it with the
+    network's normal unit run on the photo itself (``detail.fine_relief``, at up to 1024 px)
+    instead of the photo's contrast times the normals' gains. On held-out procedural relief at
+    1024 px the normal and re-rendering errors fall (benchmarks/README.md, detail); off by default
+    because on a real card of foil glitter it re-renders the other photos worse. About 2 s more
+    on two cores."""
 
     grey_specular: bool = False
     """Keep the specular's colour only in proportion to each pixel's metallic share (``Material.to_pbr``'s
@@ -219,6 +227,10 @@ class Prediction:
     (``detail.relief_gain``): 0 where the photo's fine contrast reads as albedo alone. The rest is
     the share the diffuse takes as albedo (``detail.add_detail``'s ``albedo_share``)."""
 
+    fine_slope: torch.Tensor | None = None
+    """(B, 2, H', W') the normals' detail read by the normal unit (``detail.fine_relief``,
+    ``CaptureConfig.fine_relief``); None: the photo's contrast times their gains."""
+
     relief_test_read: bool = False
     """Whether the relief test read the photo (``detail.relief_test_reads``; ``normal_detail`` is
     1 where it did not)."""
@@ -231,7 +243,8 @@ class Prediction:
             from .detail import add_detail
 
             maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps,
-                              normal_gain=self.normal_detail, albedo_share=1.0 - self.normal_detail)
+                              normal_gain=self.normal_detail, albedo_share=1.0 - self.normal_detail,
+                              fine_slope=self.fine_slope)
         finishing = self.grey_specular or self.normal_strength != 1.0 or self.specular_floor > 0.0
         if finishing and maps is self.output.maps:
             maps = maps.clone()  # the output's own maps stay as the network gave them
@@ -386,9 +399,13 @@ class Capturer:
             output = output.unsaturated()
         output = output.with_shrunk_deviations(constants.LOBE, self.config.lobe_variation)
         detailed = self.config.detail and prediction.size[0] > output.maps.shape[-2]
-        tested = (detailed and self.config.relief_test
-                  and relief_test_reads(tuple(photo.pixels.shape[-2:]), tuple(output.maps.shape[-2:])))
+        low_size = tuple(output.maps.shape[-2:])
+        wide = detailed and relief_test_reads(tuple(photo.pixels.shape[-2:]), low_size)
+        tested = wide and self.config.relief_test
+        fine = (fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size)
+                if wide and self.config.fine_relief and hasattr(self.model, "normal_unit") else None)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
+                       fine_slope=fine,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
                        normal_strength=self.config.normal_strength, relief_test_read=tested,
                        normal_detail=photo_relief_gain(photo.pixels, light, output.maps, photo.fov, self.convention,
@@ -460,6 +477,7 @@ class Capturer:
                                                                 "network_size": list(prediction.output.maps.shape[-2:]),
                                                                 "detail_added": prediction.detail_from is not None,
                                                                 "relief_test_read": prediction.relief_test_read,
+                                                                "fine_relief": prediction.fine_slope is not None,
                                                                 "normal_detail": prediction.normal_detail}})
         return CaptureResult(material=material, photo=photo.pixels, offset=offset, fov=photo.fov,
                              fov_source=photo.fov_source, searched=config.light is None, search_history=history,

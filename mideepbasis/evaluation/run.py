@@ -91,6 +91,10 @@ class EvaluationConfig:
     rest as albedo, as ``capture`` does from 4 times the network's resolution on
     (``CaptureConfig.relief_test``; None: capture's default)."""
 
+    fine_relief: bool | None = None
+    """Read the normals' detail above the network's resolution with its normal unit, as ``capture
+    --fine-relief`` does (``CaptureConfig.fine_relief``; None: capture's default)."""
+
     grey_specular: bool | None = None
     """Make the specular grey but for each pixel's metallic share, as ``capture --grey-specular``
     does (``CaptureConfig.grey_specular``; None: capture's default)."""
@@ -169,8 +173,8 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
 
 
 #: The fields an evaluation shares with ``CaptureConfig``, None in the evaluation for capture's default.
-SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "grey_specular", "specular_floor", "normal_strength",
-                         "lobe_variation")
+SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "grey_specular", "specular_floor",
+                         "normal_strength", "lobe_variation")
 
 
 def capture_options(config: EvaluationConfig | None) -> dict:

@@ -16,7 +16,7 @@ from ..helpers import matte_egg_crate
 #: What the tests ask: high-band energy of the detailed diffuse against the truth's, and how much of
 #: the upsampled answer's error the detail removes.
 TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "flat_normal": 1e-3,
-              "made_up_band_left": 0.85}
+              "made_up_band_left": 0.85, "fine_relief_correlation": 0.4, "fine_slope_kept": 2e-3}
 
 SIZE, LOW = 256, 32
 
@@ -274,3 +274,91 @@ def test_the_report_says_what_the_detail_step_did():
     assert "kept 34% of the normals' detail" in detail_summary({**base, "normal_detail": 0.34})
     assert "other 66%" in detail_summary({**base, "normal_detail": 0.34})
     assert detail_summary({"offset": [0.0, 0.0]}) is None  # a provenance that does not say
+    assert "normal unit reads" in detail_summary({**base, "normal_detail": 0.34, "fine_relief": True})
+    assert "normal unit" not in detail_summary({**base, "normal_detail": 0.34})
+
+
+def _matte_relief(family: str, seed: int, size: int) -> torch.Tensor:
+    """(1, 10, size, size) a procedural material's relief under one matte grey albedo: what a photo
+    shows of it at a finer scale than the network's is shading alone."""
+    from mideepbasis.data.procedural import generate
+
+    maps = generate(seed, size=size, family=family).to_tensor()[None]
+    maps[:, constants.DIFFUSE], maps[:, constants.ROUGHNESS], maps[:, constants.SPECULAR] = 0.5, 1.0, 0.0
+    return maps
+
+
+@pytest.mark.parametrize("family,seed", [("concrete", 1), ("fabric", 4)])
+def test_fine_relief_reads_a_reliefs_shading_finer_than_the_network(family, seed):
+    from mideepbasis.evaluation import above_band
+    from mideepbasis.model.checkpoint import load_model
+
+    model = load_model()
+    size, network = 512, model.info.training_size
+    maps = _matte_relief(family, seed, size)
+    photo, light = _flash_photo(maps)
+    slope = detail.fine_relief(model, photo[None], light, constants.DEFAULT_FOV_DEG, (network, network))
+    assert slope.shape == (1, 2, size, size)
+    true_fine = above_band(maps[:, 0:2] / maps[:, 2:3], network)  # the true slopes above the network's band
+    correlation = float((slope * true_fine).sum() / (slope.square().sum() * true_fine.square().sum()).sqrt())
+    assert correlation > TOLERANCES["fine_relief_correlation"]
+
+
+def test_fine_relief_runs_at_most_at_its_size_on_a_multiple_of_the_units_levels(monkeypatch):
+    from mideepbasis.model.checkpoint import load_model
+
+    model = load_model()
+    seen = []
+    relief_inputs = model.relief_inputs
+    monkeypatch.setattr(model, "relief_inputs", lambda photo, *rest: seen.append(photo.shape[-2:]) or
+                        relief_inputs(photo, *rest))
+    photo = torch.full((1, 3, 300, 200), 0.3)
+    slope = detail.fine_relief(model, photo, torch.tensor([0.1, 0.2, 2.4]), constants.DEFAULT_FOV_DEG, (64, 64),
+                               max_size=256)
+    # 300 x 200 scaled by 256 / 300 (256 x 170.7) and cut to multiples of 32 (the unit's 4 levels, 2 octaves).
+    assert seen == [torch.Size([256, 160])] and slope.shape == (1, 2, 256, 160)
+
+
+def test_a_fine_slope_takes_the_normals_gains_place_scaled_by_the_relief_gain():
+    albedo, photo = textured_scene(4)
+    low, maps = upsampled_answer(albedo)
+    generator = torch.Generator().manual_seed(5)
+    slope = 0.05 * torch.randn(1, 2, SIZE // 2, SIZE // 2, generator=generator)  # at half the working size
+    slope = slope - upsample_bilinear(downsample(slope, LOW), SIZE // 2, SIZE // 2)
+
+    def tilts(normal_gain: float, fine_slope: torch.Tensor | None) -> torch.Tensor:
+        detailed = detail.add_detail(maps.clone(), photo, low, normal_gain=normal_gain, fine_slope=fine_slope)
+        return detailed[:, 0:2] / detailed[:, 2:3]
+
+    flat = tilts(0.0, None)  # the normals as upsampled: the network's answer has flat normals here
+    expected = upsample_bilinear(slope, SIZE, SIZE)
+    expected = expected - upsample_bilinear(downsample(expected, LOW), SIZE, SIZE)  # what capture keeps below
+    for gain in (1.0, 0.5):
+        added = tilts(gain, slope) - flat
+        assert torch.allclose(added, gain * expected, atol=TOLERANCES["fine_slope_kept"])
+    assert torch.allclose(tilts(0.0, slope), flat, atol=1e-6)
+    # The reflectance is the same with the fine slope as without it.
+    with_slope = detail.add_detail(maps.clone(), photo, low, fine_slope=slope)
+    without = detail.add_detail(maps.clone(), photo, low)
+    assert torch.equal(with_slope[:, constants.REFLECTANCE], without[:, constants.REFLECTANCE])
+
+
+def test_capture_reads_the_fine_relief_only_when_asked_and_from_four_times_the_network_size(tmp_path):
+    from dataclasses import replace
+
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
+    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    used = {}
+    for size in (128, 64):
+        photo, _ = _flash_photo(_plain_grain(size))
+        for fine in (True, False):
+            capture_config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW, symmetries=1,
+                                           refine=RefineConfig(steps=0), fine_relief=fine)
+            provenance = Capturer(model, capture_config).capture(photo).material.provenance["capture"]
+            used[size, fine] = provenance["fine_relief"]
+    assert used == {(128, True): True, (128, False): False, (64, True): False, (64, False): False}
