@@ -2,10 +2,12 @@
 
     .venv/bin/python benchmarks/capture_ab.py --no-refine-unclamped-moves [--repeats 8]
     .venv/bin/python benchmarks/capture_ab.py --b-model runs/OTHER.safetensors      # two models, the same options
+    .venv/bin/python benchmarks/capture_ab.py --resolution 1024 --fine-relief --a-resolution-too
 
 Captures the bundled example photo with capture's defaults (A) and with the capture options given
 (B; any of ``mideepbasis capture``'s, as ``CaptureConfig`` reads them, and ``--b-model``), A and B taken in turn after
-one untimed capture each (which records drjit's refinement step), and prints the median wall time
+one untimed capture each (which records drjit's refinement step; ``--a-resolution-too``: A at B's
+working resolution), and prints the median wall time
 of each and their ratio: a change is judged by the ratio, never by seconds from another machine.
 Writes nothing.
 """
@@ -28,14 +30,19 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=8)
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--b-model", default=None, help="B's checkpoint (default: --model's)")
+    parser.add_argument("--a-resolution-too", action="store_true",
+                        help="capture A at B's --resolution too, so that only the other options differ")
     add_config_arguments(parser, CaptureConfig, describe=False)
     args = parser.parse_args()
     model, photo = load_model(args.model), example_capture_dir() / "photo.jpg"
     changes = [f"{name} {value}" for name, value in given_fields(args, CaptureConfig).items()]
     changes += [f"model {args.b_model}"] if args.b_model else []
     b_model = load_model(args.b_model) if args.b_model else model
-    capturers = {"A (defaults)": Capturer(model, CaptureConfig()),
-                 f"B ({', '.join(changes) or 'the same'})": Capturer(b_model, config_from_arguments(CaptureConfig, args))}
+    b_config = config_from_arguments(CaptureConfig, args)
+    a_config = CaptureConfig(resolution=b_config.resolution) if args.a_resolution_too else CaptureConfig()
+    a_name = f"A (defaults{f', resolution {a_config.resolution}' * args.a_resolution_too})"
+    capturers = {a_name: Capturer(model, a_config),
+                 f"B ({', '.join(changes) or 'the same'})": Capturer(b_model, b_config)}
     for capturer in capturers.values():
         capturer.capture(photo)
     seconds = {name: [] for name in capturers}

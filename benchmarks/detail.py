@@ -46,6 +46,10 @@ refinement's spread on glossy materials rather than the resolution. Entry
 from it to calibrate the detail step's constants on (``detail.DIFFUSE_GAIN``, the relief test's
 thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_seeds_N`` too.
 ``--no-relief-test`` captures without the relief test: its entries end in ``_no_relief_test``.
+``--fine-relief`` captures with the normals' detail read by the network's normal unit
+(``CaptureConfig.fine_relief``): its entries end in ``_fine_relief``.
+``--swap-reflectance`` without ``--visibility`` captures the relief materials so photographed:
+entries end in ``_swapped``.
 
 ``--registration DIR`` measures instead how much of a calibrated real scene's fine detail (its
 photo 00's contrast above the band) the other photos show where it is (``registration``): the
@@ -371,6 +375,17 @@ def with_reflectance_of(relief: torch.Tensor, other: torch.Tensor) -> torch.Tens
     return torch.cat([relief[:, constants.NORMAL], other[:, constants.REFLECTANCE]], dim=1)
 
 
+def swapped_maps(material: dict, reliefs: list[dict], size: int, swap: bool) -> tuple[torch.Tensor, str]:
+    """``true_maps`` of ``material``; with ``swap``, a relief one under the next relief material's
+    reflectance (``with_reflectance_of``; the last under the first's), its variant saying so."""
+    truth, variant = true_maps(material, size)
+    if swap and material["kind"] == "relief":
+        following = reliefs[(reliefs.index(material) + 1) % len(reliefs)]
+        truth = with_reflectance_of(truth, true_maps(following, size)[0])
+        variant = f"{variant} under {following['family']}"
+    return truth, variant
+
+
 def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, convention: str, extent: float) -> dict:
     """``shading_visibility`` of each relief material, printed, and their means; with
     ``args.swap_reflectance`` each relief under the next relief material's reflectance
@@ -381,11 +396,7 @@ def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, conventio
     for index, material in enumerate(chosen):
         if material["kind"] != "relief":
             continue
-        truth, variant = true_maps(material, args.size)
-        if args.swap_reflectance:
-            following = reliefs[(reliefs.index(material) + 1) % len(reliefs)]
-            truth = with_reflectance_of(truth, true_maps(following, args.size)[0])
-            variant = f"{variant} under {following['family']}"
+        truth, variant = swapped_maps(material, reliefs, args.size, args.swap_reflectance)
         photos, lights = flash_photos(truth, offsets[index:index + 1], constants.DEFAULT_FOV_DEG, convention, extent)
         row = {**material, "variant": variant, **shading_visibility(truth, photos, lights[0], args.band)}
         rows.append(row)
@@ -510,11 +521,15 @@ def main() -> None:
     parser.add_argument("--no-relief-test", action="store_true",
                         help="capture with the normals' detail not scaled by the photo's relief share "
                              "(CaptureConfig.relief_test)")
+    parser.add_argument("--fine-relief", action="store_true",
+                        help="capture with the normals' detail read by the network's normal unit on the photo "
+                             "(CaptureConfig.fine_relief); entries end in _fine_relief")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
     parser.add_argument("--swap-reflectance", action="store_true",
-                        help="with --visibility: each relief under the next relief material's diffuse, roughness "
-                             "and specular, so that its albedo does not follow its relief")
+                        help="each relief under the next relief material's diffuse, roughness and specular, so "
+                             "that its albedo does not follow its relief (with --visibility, or for the captures: "
+                             "entries end in _swapped)")
     parser.add_argument("--registration", type=Path, default=None, metavar="DIR",
                         help="only measure how the fine detail of the calibrated scenes in DIR lines up across their "
                              "photos (registration)")
@@ -526,7 +541,7 @@ def main() -> None:
 
     model = load_model(args.model)
     fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
-    base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test)
+    base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test, fine_relief=args.fine_relief)
     if args.refine_steps is not None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
     chosen = materials(args.materials, args.flat, args.first_seed)
@@ -538,6 +553,11 @@ def main() -> None:
     # Nor does a capture without the relief test overwrite the default's entry.
     key_suffix += "_no_relief_test" if args.no_relief_test else ""
     command_suffix += " --no-relief-test" if args.no_relief_test else ""
+    key_suffix += "_fine_relief" if args.fine_relief else ""
+    command_suffix += " --fine-relief" if args.fine_relief else ""
+    if not args.visibility:
+        key_suffix += "_swapped" if args.swap_reflectance else ""
+        command_suffix += " --swap-reflectance" if args.swap_reflectance else ""
     if args.visibility:
         key = "detail_visibility_swapped" if args.swap_reflectance else "detail_visibility"
         write_section(args.output, key + key_suffix,
@@ -552,8 +572,9 @@ def main() -> None:
     sheet_left = dict(SHEET_MATERIALS) if not args.no_sheet else {}
     sheet_rows, records = [], []
     started = time.perf_counter()
+    reliefs = [material for material in chosen if material["kind"] == "relief"]
     for index, material in enumerate(chosen):
-        truth, variant = true_maps(material, args.size)
+        truth, variant = swapped_maps(material, reliefs, args.size, args.swap_reflectance)
         offset = (float(offsets[index, 0]), float(offsets[index, 1]))
         photos, _ = flash_photos(truth, offsets[index:index + 1], fov, convention, extent)
         if args.photo_jitter > 0:
@@ -622,7 +643,8 @@ def main() -> None:
     report = {"model": args.model or "shipped", "size": args.size, "low": args.low, "band": args.band,
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
               "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
-              "first_seed": args.first_seed, "groups": groups, "per_material": records}
+              "first_seed": args.first_seed, "fine_relief": args.fine_relief,
+              "swap_reflectance": args.swap_reflectance, "groups": groups, "per_material": records}
     if args.photo_jitter > 0:
         write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}{key_suffix}",
                       f"detail --photo-jitter {args.photo_jitter:g} --jitter-seed {args.jitter_seed}{command_suffix}",
