@@ -32,8 +32,9 @@ made up from the albedo: that share of their band, as the fitted gains explain i
 
 ``CaptureConfig.fine_relief`` reads the normals' detail another way (``fine_relief``): the
 network's normal unit, which reads relief from a flash photo's shading, run once more on the photo
-itself (at up to ``FINE_RELIEF_SIZE``), its slope above the network's band put in place of the
-photo's contrast times the normals' gains, scaled by the relief test's gain all the same.
+itself (at up to ``FINE_RELIEF_SIZE``), its slope above the network's band weighted by each
+pixel's diffuse share (glints are the specular's, not relief) and put in place of the photo's
+contrast times the normals' gains, scaled by the relief test's gain all the same.
 """
 
 from __future__ import annotations
@@ -200,13 +201,14 @@ def relief_test_reads(photo_size: tuple[int, int], low_size: tuple[int, int]) ->
 
 
 def photo_relief_gain(photo: torch.Tensor, light: torch.Tensor, low_maps: torch.Tensor, fov: float, convention: str,
-                      extent: float = 1.0) -> float:
+                      extent: float = 1.0, matte: torch.Tensor | None = None) -> float:
     """``relief_gain`` of a photo (3, H, W) taken with the flash at ``light`` (3,), the diffuse's
-    share of it from the network's maps ``low_maps`` (1, 10, h, w) (``matte_share``); 1 for a
-    photo the test does not read (``relief_test_reads``)."""
+    share of it from the network's maps ``low_maps`` (1, 10, h, w) (``matte_share``, or ``matte``
+    (h, w) where given); 1 for a photo the test does not read (``relief_test_reads``)."""
     if not relief_test_reads(tuple(photo.shape[-2:]), tuple(low_maps.shape[-2:])):
         return 1.0
-    matte = matte_share(low_maps[:1].detach().cpu(), light.cpu(), fov, convention, extent)
+    if matte is None:
+        matte = matte_share(low_maps[:1].detach().cpu(), light.cpu(), fov, convention, extent)
     share = relief_share(photo.cpu(), light.cpu(), tuple(low_maps.shape[-2:]), extent, matte=matte**MATTE_POWER)
     return relief_gain(share)
 
@@ -215,23 +217,39 @@ def photo_relief_gain(photo: torch.Tensor, light: torch.Tensor, low_maps: torch.
 #: is area-averaged to it first. The unit, trained at 128 px, reads a 1024 px photo's relief as it
 #: reads a 128 px one's: on held-out procedural relief at 1024 px (``benchmarks/detail.py``) its
 #: slope above the 128 px band correlates 0.57 with the truth's, 0.48 with each relief under
-#: another material's albedo (so it reads the shading, not an albedo that follows the relief).
-#: Its memory and time grow with the side's square (about 2 s at 1024 px on two cores).
+#: another material's albedo (so it reads the shading, not an albedo that follows the relief;
+#: unweighted, a script outside the repository). On the photo area-averaged to 512 px the relief
+#: gained nothing over the normals' gains. Its memory and time grow with the side's square (about
+#: 2 s and 0.9 GB at 1024 px on two cores).
 FINE_RELIEF_SIZE = 1024
 
 
+#: Power of the diffuse's share (``matte_share``) that weighs the fine relief, pixel by pixel
+#: (``fine_relief``'s ``matte``): where the flash's highlight dominates, the photo's fine contrast
+#: is mostly glints and the specular's own texture, which the unit reads as bumps. At 1024 px,
+#: powers 0 / 1 / 2: card-blue (foil glitter) 0.1671 / 0.1606 / 0.1603 (without the fine relief
+#: 0.1609); the calibration set's relief normal RMSE 0.0683 / 0.0690 / 0.0699 (``benchmarks/
+#: detail.py --first-seed 500001000 --seed 1``); the benchmark's crumpled foil 0.0139 / 0.0136 /
+#: 0.0136 (0.0135), its brushed silver, a metal with no diffuse share, 0.0421 / 0.0458 / 0.0492
+#: (0.0452).
+FINE_RELIEF_MATTE_POWER = 1.0
+
+
 def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, fov: float,
-                low_size: tuple[int, int], max_size: int = FINE_RELIEF_SIZE) -> torch.Tensor:
+                low_size: tuple[int, int], max_size: int = FINE_RELIEF_SIZE,
+                matte: torch.Tensor | None = None) -> torch.Tensor:
     """The relief finer than the network's resolution as its normal unit reads it from the photo.
 
     The unit (``DeepBasisNet.normal_unit``, its octaves summed as in the network's pass) runs on
     the photo area-averaged to at most ``max_size`` px, a multiple of the sizes its levels halve
     to; what its slope holds at and below ``low_size`` (area average, bilinear back) is taken out:
-    there the network's answer stays.
+    there the network's answer stays. The slope is weighted by ``matte`` to the power
+    ``FINE_RELIEF_MATTE_POWER``: the relief is read where the photo shows the diffuse's shading.
 
     Args:
         model: a network with a normal unit; photo: (B, 3, H, W) linear; light: (B, 3) or (3,)
-            the flash [patch half-widths]; fov: the photo's [deg]; low_size: the network's (h, w).
+            the flash [patch half-widths]; fov: the photo's [deg]; low_size: the network's (h, w);
+        matte: (h', w') the diffuse's share of the photo (``matte_share``), at any size; None: 1.
 
     Returns:
         (B, 2, H', W') the x and y slope to add to the normals at the photo's size (bilinear up
@@ -248,7 +266,10 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
     with torch.no_grad():
         slope = model.octave_slope(model.relief_inputs(small.to(device), lights.to(device), fov))
     slope = slope.float().to(photo.device)
-    return slope - upsample_bilinear(downsample(slope, low_size), *size)
+    slope = slope - upsample_bilinear(downsample(slope, low_size), *size)
+    if matte is not None:
+        slope = slope * upsample_bilinear(matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER, *size)
+    return slope
 
 
 def _guides(photo: torch.Tensor) -> torch.Tensor:

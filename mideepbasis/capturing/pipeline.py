@@ -27,7 +27,7 @@ from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
 from ..model.symmetry import check_symmetries, parse_symmetries
-from .detail import fine_relief, photo_relief_gain, relief_test_reads
+from .detail import fine_relief, matte_share, photo_relief_gain, relief_test_reads
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -78,11 +78,12 @@ class CaptureConfig:
 
     fine_relief: bool = False
     """From 4 times the network's resolution on, read the normals' detail above it with the
-    network's normal unit run on the photo itself (``detail.fine_relief``, at up to 1024 px)
-    instead of the photo's contrast times the normals' gains. On held-out procedural relief at
-    1024 px the normal and re-rendering errors fall (benchmarks/README.md, detail); off by default
-    because on a real card of foil glitter it re-renders the other photos worse. About 2 s more
-    on two cores."""
+    network's normal unit run on the photo itself (``detail.fine_relief``, at up to 1024 px,
+    weighted by each pixel's diffuse share) instead of the photo's contrast times the normals'
+    gains. On held-out procedural relief at 1024 px the normal and re-rendering errors fall
+    (benchmarks/README.md, detail); off by default because a flat grained wood that the relief
+    test reads as partly relief gets its grain as relief, and it takes about 2 s more on two
+    cores."""
 
     grey_specular: bool = False
     """Keep the specular's colour only in proportion to each pixel's metallic share (``Material.to_pbr``'s
@@ -402,14 +403,18 @@ class Capturer:
         low_size = tuple(output.maps.shape[-2:])
         wide = detailed and relief_test_reads(tuple(photo.pixels.shape[-2:]), low_size)
         tested = wide and self.config.relief_test
-        fine = (fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size)
-                if wide and self.config.fine_relief and hasattr(self.model, "normal_unit") else None)
+        fine_wanted = wide and self.config.fine_relief and hasattr(self.model, "normal_unit")
+        extent = self.model.config.plane_extent
+        matte = (matte_share(output.maps[:1].detach().cpu(), light.cpu(), photo.fov, self.convention, extent)
+                 if tested or fine_wanted else None)
+        fine = (fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte)
+                if fine_wanted else None)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
                        normal_strength=self.config.normal_strength, relief_test_read=tested,
                        normal_detail=photo_relief_gain(photo.pixels, light, output.maps, photo.fov, self.convention,
-                                                       self.model.config.plane_extent) if tested else 1.0)
+                                                       extent, matte=matte) if tested else 1.0)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""

@@ -362,3 +362,22 @@ def test_capture_reads_the_fine_relief_only_when_asked_and_from_four_times_the_n
             provenance = Capturer(model, capture_config).capture(photo).material.provenance["capture"]
             used[size, fine] = provenance["fine_relief"]
     assert used == {(128, True): True, (128, False): False, (64, True): False, (64, False): False}
+
+
+def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
+    from mideepbasis.model.checkpoint import load_model
+
+    model = load_model()
+    photo, light = _flash_photo(_matte_relief("concrete", 1, 128))
+    read = lambda matte: detail.fine_relief(model, photo[None], light, constants.DEFAULT_FOV_DEG, (32, 32),  # noqa: E731
+                                            matte=matte)
+    whole = read(None)
+    assert float(whole.abs().max()) > 0.0
+    assert torch.allclose(read(torch.ones(32, 32)), whole)
+    half = read(torch.full((32, 32), 0.5))
+    assert torch.allclose(half, whole * 0.5**detail.FINE_RELIEF_MATTE_POWER, atol=1e-7)
+    # A highlight over the left half (no diffuse share there) leaves its relief out.
+    left_dark = torch.ones(32, 32)
+    left_dark[:, :12] = 0.0
+    sided = read(left_dark)
+    assert float(sided[..., :40].abs().max()) == 0.0 and torch.equal(sided[..., 56:], whole[..., 56:])
