@@ -369,8 +369,10 @@ def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
 
     model = load_model()
     photo, light = _flash_photo(_matte_relief("concrete", 1, 128))
-    read = lambda matte: detail.fine_relief(model, photo[None], light, constants.DEFAULT_FOV_DEG, (32, 32),  # noqa: E731
-                                            matte=matte)
+
+    def read(matte: torch.Tensor | None) -> torch.Tensor:
+        return detail.fine_relief(model, photo[None], light, constants.DEFAULT_FOV_DEG, (32, 32), matte=matte)
+
     whole = read(None)
     assert float(whole.abs().max()) > 0.0
     assert torch.allclose(read(torch.ones(32, 32)), whole)
