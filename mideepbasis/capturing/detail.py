@@ -354,10 +354,7 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
         banded = (exact_in_bands(low_size[0], height) and low_size[1] * factor == width)
         rows = max(factor, BAND_PIXELS // width // factor * factor) if banded else height
 
-        def up(value: torch.Tensor, start: int, stop: int) -> torch.Tensor:
-            return (upsampled_rows(value, height, width, start, stop) if banded
-                    else upsample_bilinear(value, height, width)[..., start:stop, :])
-
+        guide_rows, gain_rows = _rows_at(low_guides, height, width), _rows_at(gains, height, width)
         slope_rows = None if fine_slope is None else _rows_at(normal_gain * fine_slope.float(), height, width)
 
         # The detail, and what it holds below the network's resolution, which is taken out again:
@@ -365,19 +362,20 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
         below = maps.new_empty(maps.shape[0], maps.shape[1], *low_size)
         for start in range(0, height, rows):
             stop = min(height, start + rows)
-            smooth = up(low_guides, start, stop)
+            smooth = guide_rows(start, stop)
             contrast = (_guides(photo[..., start:stop, :].float()) - smooth) / smooth.clamp(min=DARKEST)
-            added = up(gains, start, stop) * contrast[:, list(GUIDE_OF_CHANNEL)]
+            added = gain_rows(start, stop) * contrast[:, list(GUIDE_OF_CHANNEL)]
             if slope_rows is not None:
                 added[:, 0:2] += slope_rows(start, stop)
             maps[..., start:stop, :] += added
             below[..., start // factor:-(-stop // factor), :] = downsample(
                 added, (-(-stop // factor) - start // factor, low_size[1]))
         below[:, constants.NORMAL] += made_up
+        below_rows = _rows_at(below, height, width)
         for start in range(0, height, rows):
             stop = min(height, start + rows)
             band = maps[..., start:stop, :]
-            band -= up(below, start, stop)
+            band -= below_rows(start, stop)
             band[:, constants.NORMAL] = unit_vectors(torch.cat([band[:, 0:2], band[:, 2:3].clamp(min=1e-3)], dim=1),
                                                      dim=1)
             band[:, constants.REFLECTANCE] = band[:, constants.REFLECTANCE].clamp(0.0, 1.0)
@@ -386,7 +384,8 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
 
 def _rows_at(value: torch.Tensor, height: int, width: int):
     """A function of (start, stop) giving those rows of ``value`` (B, C, h, w) upsampled bilinearly
-    to (height, width): band by band where ``upsampled_rows`` can, else from one upsampling."""
+    to (height, width): band by band where ``upsampled_rows`` can (``add_detail`` then works in
+    bands of rows), else from one upsampling (and in one band)."""
     if tuple(value.shape[-2:]) == (height, width):
         return lambda start, stop: value[..., start:stop, :]
     factor = height // value.shape[-2]
