@@ -407,14 +407,16 @@ class Capturer:
         extent = self.model.config.plane_extent
         matte = (matte_share(output.maps[:1].detach().cpu(), light.cpu(), photo.fov, self.convention, extent)
                  if tested or fine_wanted else None)
+        normal_detail = (photo_relief_gain(photo.pixels, light, output.maps, photo.fov, self.convention, extent,
+                                           matte=matte) if tested else 1.0)
+        # The unit's slope is scaled by the relief test's gain: where that is 0 it would add nothing.
         fine = (fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte)
-                if fine_wanted else None)
+                if fine_wanted and normal_detail > 0.0 else None)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
                        normal_strength=self.config.normal_strength, relief_test_read=tested,
-                       normal_detail=photo_relief_gain(photo.pixels, light, output.maps, photo.fov, self.convention,
-                                                       extent, matte=matte) if tested else 1.0)
+                       normal_detail=normal_detail)
 
     def search(self, photo: Photo) -> SearchResult:
         """The flash offset of a hand-held photo (``capture.search.search_light``)."""

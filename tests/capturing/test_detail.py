@@ -343,7 +343,8 @@ def test_a_fine_slope_takes_the_normals_gains_place_scaled_by_the_relief_gain():
     assert torch.equal(with_slope[:, constants.REFLECTANCE], without[:, constants.REFLECTANCE])
 
 
-def test_capture_reads_the_fine_relief_only_when_asked_and_from_four_times_the_network_size(tmp_path):
+def test_capture_reads_the_fine_relief_when_asked_from_four_times_the_network_size_where_the_test_reads_relief(
+        tmp_path):
     from dataclasses import replace
 
     from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
@@ -354,14 +355,18 @@ def test_capture_reads_the_fine_relief_only_when_asked_and_from_four_times_the_n
     config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
     model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
     used = {}
-    for size in (128, 64):
-        photo, _ = _flash_photo(_plain_grain(size))
-        for fine in (True, False):
-            capture_config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW, symmetries=1,
-                                           refine=RefineConfig(steps=0), fine_relief=fine)
-            provenance = Capturer(model, capture_config).capture(photo).material.provenance["capture"]
-            used[size, fine] = provenance["fine_relief"]
-    assert used == {(128, True): True, (128, False): False, (64, True): False, (64, False): False}
+    for surface, make in (("relief", lambda size: matte_egg_crate(size, cycles=24, slope=0.15)),
+                          ("grain", _plain_grain)):
+        for size in (128, 64):
+            photo, _ = _flash_photo(make(size))
+            for fine in (True, False):
+                capture_config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW,
+                                               symmetries=1, refine=RefineConfig(steps=0), fine_relief=fine)
+                provenance = Capturer(model, capture_config).capture(photo).material.provenance["capture"]
+                used[surface, size, fine] = provenance["fine_relief"], provenance["normal_detail"] > 0
+    # Read only when asked, from 4 times the network's size on, and where the relief test keeps relief.
+    assert {key: value[0] for key, value in used.items() if value[0]} == {("relief", 128, True): True}
+    assert used["relief", 128, True][1] and not used["grain", 128, True][1]
 
 
 def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
