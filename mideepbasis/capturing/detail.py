@@ -255,8 +255,7 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
         (B, 2, H', W') the x and y slope to add to the normals at the photo's size (bilinear up
         to it), H' and W' at most ``max_size``.
     """
-    config = model.config
-    multiple = 2 ** (len(config.normal_unit_blocks) + len(config.normal_unit_octaves) - 1)
+    multiple = model.config.normal_unit_stride
     height, width = photo.shape[-2:]
     scale = max(1.0, max(height, width) / max_size)
     size = tuple(max(multiple, int(side / scale) // multiple * multiple) for side in (height, width))

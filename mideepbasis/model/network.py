@@ -157,10 +157,10 @@ class NetworkConfig:
                              f"of 2^{len(self.normal_unit_blocks)}: at most the encoder's {len(self.encoder_channels)}")
         if not any(self.normal_unit_octaves):
             raise ValueError("normal_unit_octaves needs a weight other than 0")
-        if self.normal_unit_width and len(self.normal_unit_blocks) + len(self.normal_unit_octaves) - 1 > len(self.encoder_channels):
+        if self.normal_unit_width and self.normal_unit_stride > self.stride:
             raise ValueError(f"the normal unit's {len(self.normal_unit_octaves)} octaves of {len(self.normal_unit_blocks)} "
-                             f"levels each need inputs in multiples of 2^{len(self.normal_unit_blocks) + len(self.normal_unit_octaves) - 1}: "
-                             f"more than the encoder's 2^{len(self.encoder_channels)}")
+                             f"levels each need inputs in multiples of {self.normal_unit_stride}: "
+                             f"more than the encoder's {self.stride}")
 
     @property
     def input_channels(self) -> int:
@@ -171,6 +171,12 @@ class NetworkConfig:
     def stride(self) -> int:
         """Input sizes must be multiples of this [pixels]."""
         return 2 ** len(self.encoder_channels)
+
+    @property
+    def normal_unit_stride(self) -> int:
+        """The normal unit's inputs must be multiples of this [pixels]: each of its levels halves
+        them, and each octave after the first is the photo at half the size before."""
+        return 2 ** (len(self.normal_unit_blocks) + len(self.normal_unit_octaves) - 1)
 
 
 PRESETS = {
