@@ -48,6 +48,8 @@ thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_se
 ``--no-relief-test`` captures without the relief test: its entries end in ``_no_relief_test``.
 ``--fine-relief`` captures with the normals' detail read by the network's normal unit
 (``CaptureConfig.fine_relief``): its entries end in ``_fine_relief``.
+``--denoise`` captures with the photo's fine contrast denoised (``CaptureConfig.denoise_detail``):
+its entries end in ``_denoised``.
 ``--swap-reflectance`` without ``--visibility`` captures the relief materials so photographed:
 entries end in ``_swapped``.
 
@@ -524,6 +526,9 @@ def main() -> None:
     parser.add_argument("--fine-relief", action="store_true",
                         help="capture with the normals' detail read by the network's normal unit on the photo "
                              "(CaptureConfig.fine_relief); entries end in _fine_relief")
+    parser.add_argument("--denoise", action="store_true",
+                        help="capture with the photo's fine contrast denoised (CaptureConfig.denoise_detail); "
+                             "entries end in _denoised")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
     parser.add_argument("--swap-reflectance", action="store_true",
@@ -541,7 +546,8 @@ def main() -> None:
 
     model = load_model(args.model)
     fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
-    base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test, fine_relief=args.fine_relief)
+    base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test, fine_relief=args.fine_relief,
+                         denoise_detail=args.denoise)
     if args.refine_steps is not None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
     chosen = materials(args.materials, args.flat, args.first_seed)
@@ -555,6 +561,8 @@ def main() -> None:
     command_suffix += " --no-relief-test" if args.no_relief_test else ""
     key_suffix += "_fine_relief" if args.fine_relief else ""
     command_suffix += " --fine-relief" if args.fine_relief else ""
+    key_suffix += "_denoised" if args.denoise else ""
+    command_suffix += " --denoise" if args.denoise else ""
     if not args.visibility:
         key_suffix += "_swapped" if args.swap_reflectance else ""
         command_suffix += " --swap-reflectance" if args.swap_reflectance else ""
@@ -644,6 +652,7 @@ def main() -> None:
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
               "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
               "first_seed": args.first_seed, "fine_relief": args.fine_relief,
+              "denoise_detail": args.denoise,
               "swap_reflectance": args.swap_reflectance, "groups": groups, "per_material": records}
     if args.photo_jitter > 0:
         write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}{key_suffix}",

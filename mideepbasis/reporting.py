@@ -250,14 +250,22 @@ def write_report_sheet(folder: Path, sheet: ReportSheet, environment: np.ndarray
 def detail_summary(capture: dict) -> str | None:
     """What the maps hold above the network's resolution, in words, from a capture's provenance
     (``capture``: ``network_size``, ``detail_added``, ``relief_test_read``, ``normal_detail``,
-    ``fine_relief``); None for a provenance without them."""
-    from .capturing.detail import RELIEF_MIN_FACTOR
-
+    ``fine_relief``, ``detail_denoised``); None for a provenance without them."""
     if "network_size" not in capture:
         return None
-    network_size = max(capture["network_size"])
     if not capture.get("detail_added"):
-        return f"none: the maps hold the network's {network_size} px answer"
+        return f"none: the maps hold the network's {max(capture['network_size'])} px answer"
+    summary = _added_detail_summary(capture)
+    if capture.get("detail_denoised"):
+        summary += "; the photo's noise was taken out of it first (--denoise-detail)"
+    return summary
+
+
+def _added_detail_summary(capture: dict) -> str:
+    """``detail_summary`` of a capture that added the photo's detail, but for its noise."""
+    from .capturing.detail import RELIEF_MIN_FACTOR
+
+    network_size = max(capture["network_size"])
     if not capture.get("relief_test_read"):
         return (f"the photo's, by the gains fitted at {network_size} px (the relief test reads photos of "
                 f"{RELIEF_MIN_FACTOR * network_size} px and more)")

@@ -85,6 +85,14 @@ class CaptureConfig:
     test reads as partly relief gets its grain as relief, and it takes about 2 s more on two
     cores."""
 
+    denoise_detail: bool = False
+    """Take the photo's noise out of the detail step's fine contrast first (``detail.denoise_contrast``,
+    the noise measured from the photo itself by its level, ``detail.photo_noise``): a noisy photo's
+    noise at 1024 px and above otherwise goes into the diffuse as speckle. On phone-like procedural
+    scenes at 1024 px the diffuse error falls 0.0875 -> 0.0808; off by default because a texture as
+    fine as the pixels reads as noise too, and a noise-free photo's finest texture goes with it
+    (benchmarks/README.md, detail: the photo's noise)."""
+
     grey_specular: bool = False
     """Keep the specular's colour only in proportion to each pixel's metallic share (``Material.to_pbr``'s
     split, as the exports make it) and make it grey of the same luminance otherwise: a dielectric's
@@ -232,6 +240,9 @@ class Prediction:
     """(B, 2, H', W') the normals' detail read by the normal unit (``detail.fine_relief``,
     ``CaptureConfig.fine_relief``); None: the photo's contrast times their gains."""
 
+    denoise_detail: bool = False
+    """Whether the photo's fine contrast is denoised before it is added (``CaptureConfig.denoise_detail``)."""
+
     relief_test_read: bool = False
     """Whether the relief test read the photo (``detail.relief_test_reads``; ``normal_detail`` is
     1 where it did not)."""
@@ -245,7 +256,7 @@ class Prediction:
 
             maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps,
                               normal_gain=self.normal_detail, albedo_share=1.0 - self.normal_detail,
-                              fine_slope=self.fine_slope)
+                              fine_slope=self.fine_slope, denoise=self.denoise_detail)
         finishing = self.grey_specular or self.normal_strength != 1.0 or self.specular_floor > 0.0
         if finishing and maps is self.output.maps:
             maps = maps.clone()  # the output's own maps stay as the network gave them
@@ -413,7 +424,7 @@ class Capturer:
         fine = (fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte)
                 if fine_wanted and normal_detail > 0.0 else None)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
-                       fine_slope=fine,
+                       fine_slope=fine, denoise_detail=self.config.denoise_detail,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
                        normal_strength=self.config.normal_strength, relief_test_read=tested,
                        normal_detail=normal_detail)
@@ -485,6 +496,8 @@ class Capturer:
                                                                 "detail_added": prediction.detail_from is not None,
                                                                 "relief_test_read": prediction.relief_test_read,
                                                                 "fine_relief": prediction.fine_slope is not None,
+                                                                "detail_denoised": (prediction.detail_from is not None
+                                                                                    and prediction.denoise_detail),
                                                                 "normal_detail": prediction.normal_detail}})
         return CaptureResult(material=material, photo=photo.pixels, offset=offset, fov=photo.fov,
                              fov_source=photo.fov_source, searched=config.light is None, search_history=history,

@@ -95,6 +95,10 @@ class EvaluationConfig:
     """Read the normals' detail above the network's resolution with its normal unit, as ``capture
     --fine-relief`` does (``CaptureConfig.fine_relief``; None: capture's default)."""
 
+    denoise_detail: bool | None = None
+    """Denoise the photo's fine contrast before the detail step adds it, as ``capture`` does
+    (``CaptureConfig.denoise_detail``; None: capture's default)."""
+
     grey_specular: bool | None = None
     """Make the specular grey but for each pixel's metallic share, as ``capture --grey-specular``
     does (``CaptureConfig.grey_specular``; None: capture's default)."""
@@ -173,8 +177,8 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
 
 
 #: The fields an evaluation shares with ``CaptureConfig``, None in the evaluation for capture's default.
-SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "grey_specular", "specular_floor",
-                         "normal_strength", "lobe_variation")
+SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "denoise_detail", "grey_specular",
+                         "specular_floor", "normal_strength", "lobe_variation")
 
 
 def capture_options(config: EvaluationConfig | None) -> dict:

@@ -16,7 +16,8 @@ from ..helpers import matte_egg_crate
 #: What the tests ask: high-band energy of the detailed diffuse against the truth's, and how much of
 #: the upsampled answer's error the detail removes.
 TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "flat_normal": 1e-3,
-              "made_up_band_left": 0.85, "fine_relief_correlation": 0.4, "fine_slope_kept": 2e-3}
+              "made_up_band_left": 0.85, "fine_relief_correlation": 0.4, "fine_slope_kept": 2e-3,
+              "noise_variance": 0.2, "noise_left": 0.1, "noise_energy_left": 0.15, "noise_free_change": 2e-3}
 
 SIZE, LOW = 256, 32
 
@@ -46,8 +47,8 @@ def upsampled_answer(albedo: torch.Tensor, band_slope: float = 1.0 / detail.DIFF
     return low, upsample_bilinear(low, SIZE, SIZE)
 
 
-def high_band(image: torch.Tensor) -> torch.Tensor:
-    return image - upsample_bilinear(downsample(image, LOW), SIZE, SIZE)
+def high_band(image: torch.Tensor, size: int = SIZE) -> torch.Tensor:
+    return image - upsample_bilinear(downsample(image, LOW), size, size)
 
 
 def test_a_map_that_follows_the_photo_gets_its_detail_and_a_flat_one_none():
@@ -100,6 +101,89 @@ def test_bands_of_rows_give_the_whole_image(monkeypatch):
     monkeypatch.setattr(detail, "BAND_PIXELS", SIZE * 24)  # bands of 24 rows
     banded = detail.add_detail(maps.clone(), photo, low)
     assert torch.allclose(banded, whole, atol=1e-5)
+
+
+def _falloff_photo(level: torch.Tensor) -> torch.Tensor:
+    """(1, 3, SIZE, SIZE) ``level`` (1, 3, SIZE, SIZE) under a smooth flash falloff."""
+    y, x = torch.meshgrid(torch.linspace(-1, 1, SIZE), torch.linspace(-1, 1, SIZE), indexing="ij")
+    return level * (1.0 / (1.0 + 0.5 * (x**2 + y**2)) ** 1.5).view(1, 1, SIZE, SIZE)
+
+
+def _noisy(photo: torch.Tensor, shot: float, read: float, seed: int = 0) -> torch.Tensor:
+    """``photo`` with shot noise of variance ``shot`` per unit of signal and read noise of standard
+    deviation ``read`` (a camera's, before its tone curve)."""
+    generator = torch.Generator().manual_seed(seed)
+    return photo + torch.randn(photo.shape, generator=generator) * torch.sqrt(shot * photo + read**2)
+
+
+def _smooth_rows(photo: torch.Tensor):
+    return detail._rows_at(detail._guides(downsample(photo, LOW)), SIZE, SIZE)
+
+
+@pytest.mark.parametrize("shot, read", [(1e-3, 1e-3), (3e-3, 3e-2)])
+def test_photo_noise_reads_the_noise_variance_by_level(shot, read):
+    y = torch.linspace(0.15, 0.9, SIZE).view(1, 1, SIZE, 1)
+    clean = (y * torch.linspace(0.6, 1.0, SIZE).view(1, 1, 1, SIZE)).expand(1, 3, SIZE, SIZE)
+    photo = _noisy(clean, shot, read, seed=1)
+    variances = detail.photo_noise(photo, _smooth_rows(photo), 64)
+    levels = torch.tensor([0.2, 0.4, 0.6]).view(1, 1, 3, 1).expand(1, 4, 3, 1)
+    measured = detail.noise_at(variances, levels)[0, :, :, 0]
+    truth = shot * levels[0, :, :, 0] + read**2
+    truth[3] /= 3  # the luminance, a mean of three channels
+    assert torch.allclose(measured, truth, rtol=TOLERANCES["noise_variance"])
+    assert float(detail.photo_noise(clean, _smooth_rows(clean), 64).max()) < 1e-10
+
+
+def test_photo_noise_reads_patches_spaced_out_on_a_large_photo_whatever_the_bands(monkeypatch):
+    photo = _noisy(torch.full((1, 3, SIZE, SIZE), 0.5), 1e-3, 1e-2)
+    monkeypatch.setattr(detail, "NOISE_SAMPLES", SIZE * SIZE // 16)  # every fourth row and column
+    whole = detail.photo_noise(photo, _smooth_rows(photo), SIZE)
+    assert torch.equal(detail.photo_noise(photo, _smooth_rows(photo), 37), whole)
+    monkeypatch.setattr(detail, "NOISE_SAMPLES", SIZE * SIZE)
+    every_pixel = detail.photo_noise(photo, _smooth_rows(photo), SIZE)
+    assert torch.allclose(whole, every_pixel, rtol=TOLERANCES["noise_variance"])
+    assert float(every_pixel.min()) > 0.0
+
+
+def test_photo_noise_is_not_read_from_a_texture_smooth_at_the_pixels_scale():
+    albedo, photo = textured_scene(0)
+    level = torch.full((1, 4, 1, 1), 0.3)
+    texture = detail.noise_at(detail.photo_noise(photo, _smooth_rows(photo), SIZE), level)
+    noisy = _noisy(photo, 1e-4, 1e-3)  # noise of about a tenth of the texture's fine contrast
+    noise = detail.noise_at(detail.photo_noise(noisy, _smooth_rows(noisy), SIZE), level)
+    assert float(texture.max()) < TOLERANCES["noise_left"] * float(noise.min())
+
+
+def test_the_detail_takes_the_photos_noise_out_and_keeps_a_texture():
+    # A flat albedo photographed with noise: the detail the diffuse gets is that noise, mostly.
+    flat = torch.full((1, 3, SIZE, SIZE), 0.5)
+    low, maps = upsampled_answer(flat)
+    generator = torch.Generator().manual_seed(2)
+    low[:, constants.DIFFUSE] += 0.05 * torch.randn(1, 3, LOW, LOW, generator=generator)  # some gain to give
+    photo = _noisy(_falloff_photo(flat), 1e-3, 1e-3)
+    energy = {denoise: float(high_band(detail.add_detail(maps.clone(), photo, low, denoise=denoise)
+                                       [:, constants.DIFFUSE]).square().mean()) for denoise in (False, True)}
+    assert energy[True] < TOLERANCES["noise_energy_left"] * energy[False]
+    # A texture photographed without noise keeps its detail.
+    albedo, clean = textured_scene(0)
+    low, maps = upsampled_answer(albedo)
+    kept = detail.add_detail(maps.clone(), clean, low, denoise=True)
+    assert torch.allclose(kept, detail.add_detail(maps.clone(), clean, low, denoise=False),
+                          atol=TOLERANCES["noise_free_change"])
+    # With noise, the denoised diffuse is nearer the truth.
+    noisy = _noisy(clean, 3e-3, 1e-2)
+    error = {denoise: float((detail.add_detail(maps.clone(), noisy, low, denoise=denoise)[:, constants.DIFFUSE]
+                             - albedo).square().mean()) for denoise in (False, True)}
+    assert error[True] < error[False]
+
+
+def test_bands_of_rows_give_the_whole_image_with_a_noisy_photo(monkeypatch):
+    albedo, photo = textured_scene(2)
+    photo = _noisy(photo, 3e-3, 1e-2)
+    low, maps = upsampled_answer(albedo)
+    whole = detail.add_detail(maps.clone(), photo, low, denoise=True)
+    monkeypatch.setattr(detail, "BAND_PIXELS", SIZE * 24)  # bands of 24 rows
+    assert torch.allclose(detail.add_detail(maps.clone(), photo, low, denoise=True), whole, atol=1e-5)
 
 
 @pytest.mark.parametrize("size", [LOW, LOW // 2])
@@ -260,6 +344,24 @@ def test_capture_records_the_normals_detail_it_kept_and_relief_test_false_keeps_
     assert kept == {True: (0.0, True, True), False: (1.0, False, True)}
 
 
+def test_capture_denoises_the_detail_unless_told_not_to(tiny_checkpoint):
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
+
+    size = 256
+    photo, _ = _flash_photo(_plain_grain(size))
+    photo = _noisy(photo[None], 3e-3, 1e-2)[0].clamp(0.0, 1.0)
+    results = {}
+    for denoise in (True, False):
+        config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW, symmetries=1,
+                               refine=RefineConfig(steps=0), denoise_detail=denoise)
+        material = Capturer(tiny_checkpoint, config).capture(photo).material
+        results[denoise] = material.provenance["capture"]["detail_denoised"], material.to_tensor()
+    assert results[True][0] is True and results[False][0] is False
+    fine_energy = {denoise: float(high_band(maps[constants.DIFFUSE][None], size).square().mean())
+                   for denoise, (_, maps) in results.items()}
+    assert fine_energy[True] < fine_energy[False]
+
+
 def test_the_report_says_what_the_detail_step_did():
     from mideepbasis.reporting import detail_summary
 
@@ -272,6 +374,9 @@ def test_the_report_says_what_the_detail_step_did():
     assert "shading" not in detail_summary({**base, "normal_detail": 0.0}).split("albedo:")[1]
     assert "no relief in the normals" in detail_summary({**base, "normal_detail": 0.0})
     assert "kept 34% of the normals' detail" in detail_summary({**base, "normal_detail": 0.34})
+    assert "noise" not in detail_summary({**base, "normal_detail": 0.34, "detail_denoised": False})
+    assert detail_summary({**base, "normal_detail": 0.34, "detail_denoised": True}).endswith(
+        "the photo's noise was taken out of it first (--denoise-detail)")
     assert "other 66%" in detail_summary({**base, "normal_detail": 0.34})
     assert detail_summary({"offset": [0.0, 0.0]}) is None  # a provenance that does not say
     assert "normal unit reads" in detail_summary({**base, "normal_detail": 0.34, "fine_relief": True})
