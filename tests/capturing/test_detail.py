@@ -22,14 +22,18 @@ TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "
 SIZE, LOW = 256, 32
 
 
+def _falloff_photo(level: torch.Tensor) -> torch.Tensor:
+    """(1, 3, SIZE, SIZE) ``level`` (1, 3, SIZE, SIZE) under a smooth flash falloff."""
+    y, x = torch.meshgrid(torch.linspace(-1, 1, SIZE), torch.linspace(-1, 1, SIZE), indexing="ij")
+    return level * (1.0 / (1.0 + 0.5 * (x**2 + y**2)) ** 1.5).view(1, 1, SIZE, SIZE)
+
+
 def textured_scene(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """A fine albedo texture (1, 3, SIZE, SIZE) and its photo under a smooth flash falloff."""
     generator = torch.Generator().manual_seed(seed)
     noise = torch.rand(1, 3, SIZE // 4, SIZE // 4, generator=generator)
     albedo = 0.15 + 0.6 * F.interpolate(noise, size=(SIZE, SIZE), mode="bicubic", align_corners=False).clamp(0, 1)
-    y, x = torch.meshgrid(torch.linspace(-1, 1, SIZE), torch.linspace(-1, 1, SIZE), indexing="ij")
-    falloff = (1.0 / (1.0 + 0.5 * (x**2 + y**2)) ** 1.5).view(1, 1, SIZE, SIZE)
-    return albedo, albedo * falloff
+    return albedo, _falloff_photo(albedo)
 
 
 def upsampled_answer(albedo: torch.Tensor, band_slope: float = 1.0 / detail.DIFFUSE_GAIN
@@ -101,12 +105,6 @@ def test_bands_of_rows_give_the_whole_image(monkeypatch):
     monkeypatch.setattr(detail, "BAND_PIXELS", SIZE * 24)  # bands of 24 rows
     banded = detail.add_detail(maps.clone(), photo, low)
     assert torch.allclose(banded, whole, atol=1e-5)
-
-
-def _falloff_photo(level: torch.Tensor) -> torch.Tensor:
-    """(1, 3, SIZE, SIZE) ``level`` (1, 3, SIZE, SIZE) under a smooth flash falloff."""
-    y, x = torch.meshgrid(torch.linspace(-1, 1, SIZE), torch.linspace(-1, 1, SIZE), indexing="ij")
-    return level * (1.0 / (1.0 + 0.5 * (x**2 + y**2)) ** 1.5).view(1, 1, SIZE, SIZE)
 
 
 def _noisy(photo: torch.Tensor, shot: float, read: float, seed: int = 0) -> torch.Tensor:
