@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -89,7 +90,7 @@ class CaptureConfig:
     """Take the photo's noise out of the detail step's fine contrast first (``detail.denoise_contrast``,
     the noise measured from the photo itself by its level, ``detail.photo_noise``): a noisy photo's
     noise at 1024 px and above otherwise goes into the diffuse as speckle. On phone-like procedural
-    scenes at 1024 px the diffuse error falls 0.0875 -> 0.0808; off by default because a texture as
+    scenes at 1024 px the diffuse error falls 0.0788 -> 0.0747; off by default because a texture as
     fine as the pixels reads as noise too, and a noise-free photo's finest texture goes with it
     (benchmarks/README.md, detail: the photo's noise)."""
 
@@ -146,6 +147,21 @@ class Photo:
 
     notes: list[str] = field(default_factory=list)
     """What the user should know (a crop, the field of view's source, ...)."""
+
+    default_reading: torch.Tensor | None = None
+    """(3, r, r) linear: the photo file as a capture at the default working resolution
+    (``constants.DEFAULT_RESOLUTION``) reads it, where the working resolution is larger. The
+    search, the network (where it runs at that size or below) and the refinement read this one,
+    so that their answer is the default capture's at every working resolution and only the detail
+    above the network's comes from ``pixels``: a large file is read with its 8-bit codes averaged
+    (``load_photo``), and the network given linear means of a noisy photo instead made the
+    diffuse worse (benchmarks/README.md, detail: the answer below the network's resolution).
+    None: they read ``pixels``."""
+
+    @property
+    def coarse_pixels(self) -> torch.Tensor:
+        """(3, r, r) the photo the search, the network and the refinement read."""
+        return self.pixels if self.default_reading is None else self.default_reading
 
 
 @dataclass
@@ -384,7 +400,13 @@ class Capturer:
         if source == "default" and self.model.info.fov_deg:
             fov, source = self.model.info.fov_deg, "model"
             notes = [note for note in notes if not note.startswith("no EXIF focal length")]
-        return Photo(pixels, fov, source, self._fov_notes(fov, notes))
+        default_reading = None
+        if pixels.shape[-1] > constants.DEFAULT_RESOLUTION:
+            with warnings.catch_warnings():  # the first reading warned of a dark or clipped photo
+                warnings.simplefilter("ignore")
+                default_reading = load_photo(path, self.config.fov, constants.DEFAULT_RESOLUTION,
+                                             decoding=self.model.info.photo_decoding, crop=self.config.crop)[0]
+        return Photo(pixels, fov, source, self._fov_notes(fov, notes), default_reading)
 
     def photo_from_tensor(self, pixels: torch.Tensor) -> Photo:
         """A (3, H, W) linear tensor as a photo (the config's field of view, else the model's, else 45 deg)."""
@@ -401,8 +423,13 @@ class Capturer:
     def predict(self, photo: Photo, offset: tuple[float, float] | torch.Tensor) -> Prediction:
         """The network's prediction for the photo taken with the flash at ``offset`` [patch half-widths]."""
         light = flash_position(offset, photo.fov)
-        prediction = predict_small(self.model, photo.pixels[None], light[None], photo.fov,
-                                   self.config.network_resolution, self.config.symmetries)
+        limit = network_resolution_limit(self.model, self.config.network_resolution)
+        # The default reading serves a network that runs at its size or below; one without a
+        # limit reads the working photo itself.
+        seen = photo.coarse_pixels if limit and limit <= photo.coarse_pixels.shape[-1] else photo.pixels
+        prediction = predict_small(self.model, seen[None], light[None], photo.fov, self.config.network_resolution,
+                                   self.config.symmetries)
+        prediction = replace(prediction, size=tuple(photo.pixels.shape[-2:]))
         output = prediction.output
         if self.config.lobe_variation < 1.0 and self.config.refine.unclamped_moves:
             # The shrink cuts the lobe's deviations to the signed space. An unclamped refinement (the
@@ -437,7 +464,7 @@ class Capturer:
             return predict_small(self.model, photos, lights, photo.fov, self.config.network_resolution,
                                  with_normal_unit=self.config.search.normal_unit)
 
-        return search_light(predictor, photo.pixels, photo.fov, self.convention, self.model.config.plane_extent,
+        return search_light(predictor, photo.coarse_pixels, photo.fov, self.convention, self.model.config.plane_extent,
                             self.config.search)
 
     def refine(self, prediction: Prediction, photo: Photo, offset: tuple[float, float] | torch.Tensor,
@@ -449,7 +476,7 @@ class Capturer:
         light = flash_position(offset, photo.fov)
         if self.config.refine.unclamped_moves:
             prediction = replace(prediction, output=prediction.output.unsaturated())
-        refined, losses = refine_global_bases(prediction.output, photo.pixels, light, photo.fov, self.convention,
+        refined, losses = refine_global_bases(prediction.output, photo.coarse_pixels, light, photo.fov, self.convention,
                                               self.model.config.plane_extent, self.config.refine, progress,
                                               size=prediction.size, normal_strength=prediction.normal_strength)
         return prediction.compose(refined), losses

@@ -258,3 +258,76 @@ def test_a_lobe_variation_outside_zero_to_one_is_refused_by_the_python_api_too()
 
     with pytest.raises(ValueError, match=r"lobe_variation must lie in \[0, 1\], got 1.5"):
         CaptureConfig(lobe_variation=1.5)
+
+
+def _noisy_photo_file(tmp_path, size=1024):
+    """A flash-lit gradient with strong pixel noise, 8-bit PNG: reading it with its codes averaged
+    and averaging it in linear light differ most in its dark half."""
+    rng = np.random.default_rng(3)
+    ramp = np.linspace(0.02, 0.9, size, dtype=np.float32)[None, :, None] * np.ones((size, 1, 3), np.float32)
+    noisy = (ramp + rng.normal(0.0, 0.08, ramp.shape).astype(np.float32)).clip(0.0, 1.0)
+    path = tmp_path / "noisy.png"
+    write_image(path, noisy, encode_srgb=True)
+    return path
+
+
+def test_a_larger_working_resolution_gives_the_default_captures_answer_below_the_network(tmp_path, tiny_checkpoint,
+                                                                                          monkeypatch):
+    """At 1024 px the search, the network and the refinement read the photo as a 256 px capture
+    reads it (its 8-bit codes averaged while read), not the 1024 px photo's linear means: the
+    network's answer is the default capture's bit for bit, and so are the search's and the
+    refinement's photos."""
+    from dataclasses import replace
+
+    import mideepbasis.capturing.pipeline as pipeline
+    from mideepbasis.capturing import CaptureConfig, Capturer
+    from mideepbasis.capturing.photo import load_photo
+    from mideepbasis.resampling import downsample
+
+    read = {"search": [], "refine": []}
+
+    def recording(stage, function):
+        def call(*args, **kwargs):
+            read[stage].append(args[1])
+            return function(*args, **kwargs)
+        return call
+
+    monkeypatch.setattr(pipeline, "search_light", recording("search", pipeline.search_light))
+    monkeypatch.setattr(pipeline, "refine_global_bases", recording("refine", pipeline.refine_global_bases))
+    path = _noisy_photo_file(tmp_path)
+    config = CaptureConfig(network_resolution=128, symmetries=1, detail=False, refine=RefineConfig(steps=1),
+                           search=SearchConfig(passes=1))
+    large, default = (Capturer(tiny_checkpoint, replace(config, resolution=size)) for size in (1024, 256))
+    photo = large.load(path)
+    assert photo.pixels.shape[-1] == 1024
+    torch.testing.assert_close(photo.default_reading, load_photo(path, resolution=256)[0], rtol=0, atol=0)
+    # The two readings differ where it matters: the dark half's noise averaged in codes is darker.
+    linear_means = downsample(photo.pixels[None], 128)[0]
+    coarse = downsample(photo.default_reading[None], 128)[0]
+    assert float((linear_means - coarse)[..., :32].mean()) > 2e-3
+
+    results = [capturer.capture(path) for capturer in (large, default)]
+    assert results[0].offset == results[1].offset
+    assert results[0].material.diffuse.shape[-1] == 1024
+    for stage in ("search", "refine"):
+        assert torch.equal(read[stage][0], read[stage][1])
+    light = pipeline.flash_position(results[1].offset, photo.fov)[None]
+    assert torch.equal(large.predict(photo, results[1].offset).output.maps,
+                       default.predict(default.load(path), results[1].offset).output.maps)
+    # The 1024 px photo's linear means would have given another answer.
+    assert not torch.allclose(pipeline.predict_small(large.model, photo.pixels[None], light, network_resolution=128)
+                              .output.maps, pipeline.predict_small(large.model, coarse[None], light,
+                                                                   network_resolution=128).output.maps)
+
+
+def test_a_network_without_a_resolution_limit_reads_the_working_photo_itself(tmp_path, tiny_checkpoint):
+    from mideepbasis.capturing import CaptureConfig, Capturer
+
+    path = _noisy_photo_file(tmp_path, size=640)
+    config = CaptureConfig(resolution=640, network_resolution=0, symmetries=1, detail=False,
+                           refine=RefineConfig(steps=0), light=(0.1, -0.1))
+    capturer = Capturer(tiny_checkpoint, config)
+    photo = capturer.load(path)
+    assert photo.default_reading.shape[-1] == constants.DEFAULT_RESOLUTION
+    assert capturer.predict(photo, (0.1, -0.1)).output.maps.shape[-1] == 640
+
