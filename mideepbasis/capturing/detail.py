@@ -318,9 +318,10 @@ def photo_noise(photo: torch.Tensor, smooth_rows: Callable[[int, int], torch.Ten
     sample's own spread (``(1 - sqrt(d / n))^2`` for d dimensions and n patches). Each guide is
     measured apart: a phone's JPEG keeps the luminance's noise and takes out most of the colour's.
     A texture or a relief's shading as fine as the pixels reads as noise too (on noise-free
-    procedural photos a speckled granite's about 6 % of its level, a fine leather's 39 %). A bin of fewer than ``NOISE_MIN_PATCHES`` patches takes its nearest measured one's, and
-    none measured: 0. Read band by band of ``rows`` rows, on patches ``NOISE_STRIDE`` pixels apart
-    or more, at most about ``NOISE_SAMPLES`` of them.
+    procedural photos a speckled granite's about 6 % of its level, a fine leather's 39 %). A bin of
+    fewer than ``NOISE_MIN_PATCHES`` patches takes its nearest measured one's, and none measured:
+    0. Read band by band of ``rows`` rows, on patches ``NOISE_STRIDE`` pixels apart or more, at
+    most about ``NOISE_SAMPLES`` of them.
     """
     batch, _, height, width = photo.shape
     size, centre, dimensions = NOISE_PATCH, NOISE_PATCH // 2, NOISE_PATCH**2

@@ -330,4 +330,3 @@ def test_a_network_without_a_resolution_limit_reads_the_working_photo_itself(tmp
     photo = capturer.load(path)
     assert photo.default_reading.shape[-1] == constants.DEFAULT_RESOLUTION
     assert capturer.predict(photo, (0.1, -0.1)).output.maps.shape[-1] == 640
-
