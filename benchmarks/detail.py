@@ -47,7 +47,8 @@ from it to calibrate the detail step's constants on (``detail.DIFFUSE_GAIN``, th
 thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_seeds_N`` too.
 ``--no-relief-test`` captures without the relief test: its entries end in ``_no_relief_test``.
 ``--fine-relief`` captures with the normals' detail read by the network's normal unit
-(``CaptureConfig.fine_relief``): its entries end in ``_fine_relief``.
+(``CaptureConfig.fine_relief``): its entries end in ``_fine_relief``, and with
+``--fine-relief-strength S`` other than 1 (``CaptureConfig.fine_relief_strength``) in ``_fine_relief_S``.
 ``--denoise`` captures with the photo's fine contrast denoised (``CaptureConfig.denoise_detail``):
 its entries end in ``_denoised``.
 ``--swap-reflectance`` without ``--visibility`` captures the relief materials so photographed:
@@ -526,6 +527,9 @@ def main() -> None:
     parser.add_argument("--fine-relief", action="store_true",
                         help="capture with the normals' detail read by the network's normal unit on the photo "
                              "(CaptureConfig.fine_relief); entries end in _fine_relief")
+    parser.add_argument("--fine-relief-strength", type=float, default=1.0, metavar="S",
+                        help="with --fine-relief, the factor of the relief it reads "
+                             "(CaptureConfig.fine_relief_strength); other than 1, entries end in _fine_relief_S")
     parser.add_argument("--denoise", action="store_true",
                         help="capture with the photo's fine contrast denoised (CaptureConfig.denoise_detail); "
                              "entries end in _denoised")
@@ -547,7 +551,7 @@ def main() -> None:
     model = load_model(args.model)
     fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
     base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test, fine_relief=args.fine_relief,
-                         denoise_detail=args.denoise)
+                         fine_relief_strength=args.fine_relief_strength, denoise_detail=args.denoise)
     if args.refine_steps is not None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
     chosen = materials(args.materials, args.flat, args.first_seed)
@@ -561,6 +565,9 @@ def main() -> None:
     command_suffix += " --no-relief-test" if args.no_relief_test else ""
     key_suffix += "_fine_relief" if args.fine_relief else ""
     command_suffix += " --fine-relief" if args.fine_relief else ""
+    if args.fine_relief and args.fine_relief_strength != 1.0:
+        key_suffix += f"_{args.fine_relief_strength:g}"
+        command_suffix += f" --fine-relief-strength {args.fine_relief_strength:g}"
     key_suffix += "_denoised" if args.denoise else ""
     command_suffix += " --denoise" if args.denoise else ""
     if not args.visibility:
@@ -652,6 +659,7 @@ def main() -> None:
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
               "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
               "first_seed": args.first_seed, "fine_relief": args.fine_relief,
+              "fine_relief_strength": args.fine_relief_strength,
               "denoise_detail": args.denoise,
               "swap_reflectance": args.swap_reflectance, "groups": groups, "per_material": records}
     if args.photo_jitter > 0:

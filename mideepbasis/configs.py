@@ -69,6 +69,14 @@ def unit_share(text: str | float) -> float:
     return value
 
 
+def non_negative(text: str | float) -> float:
+    """A number of at least 0, for a field's ``metadata={"parse": non_negative}`` (and its ``__post_init__``)."""
+    value = float(text)
+    if not value >= 0.0:
+        raise ValueError(f"must be 0 or more, got {value:g}")
+    return value
+
+
 class _JoinRepeated(argparse.Action):
     """A variable-length tuple option given more than once: its values joined in order."""
 

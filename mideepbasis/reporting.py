@@ -250,7 +250,7 @@ def write_report_sheet(folder: Path, sheet: ReportSheet, environment: np.ndarray
 def detail_summary(capture: dict) -> str | None:
     """What the maps hold above the network's resolution, in words, from a capture's provenance
     (``capture``: ``network_size``, ``detail_added``, ``relief_test_read``, ``normal_detail``,
-    ``fine_relief``, ``detail_denoised``); None for a provenance without them."""
+    ``fine_relief``, ``fine_relief_strength``, ``detail_denoised``); None for a provenance without them."""
     if "network_size" not in capture:
         return None
     if not capture.get("detail_added"):
@@ -277,6 +277,9 @@ def _added_detail_summary(capture: dict) -> str:
     shading = "the diffuse's fitted gains carry some of the shading too"
     if capture.get("fine_relief"):
         shading += "; the normals' detail is the relief the network's normal unit reads in the photo (--fine-relief)"
+        strength = float(capture.get("fine_relief_strength", 1.0))
+        if strength != 1.0:
+            shading += f", times {strength:g} (--fine-relief-strength)"
     if kept >= 0.995:
         return ("the photo's; the relief test read its fine contrast as shading: the normals keep all of their "
                 f"detail; {shading}")

@@ -267,7 +267,7 @@ FINE_RELIEF_MATTE_POWER = 1.0
 
 def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, fov: float,
                 low_size: tuple[int, int], max_size: int = FINE_RELIEF_SIZE,
-                matte: torch.Tensor | None = None) -> torch.Tensor:
+                matte: torch.Tensor | None = None, strength: float = 1.0) -> torch.Tensor:
     """The relief finer than the network's resolution as its normal unit reads it from the photo.
 
     The unit (``DeepBasisNet.normal_unit``, its octaves summed as in the network's pass) runs on
@@ -275,11 +275,13 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
     to; what its slope holds at and below ``low_size`` (area average, bilinear back) is taken out:
     there the network's answer stays. The slope is weighted by ``matte`` to the power
     ``FINE_RELIEF_MATTE_POWER``: the relief is read where the photo shows the diffuse's shading.
+    ``strength`` scales it (``CaptureConfig.fine_relief_strength``).
 
     Args:
         model: a network with a normal unit; photo: (B, 3, H, W) linear; light: (B, 3) or (3,)
             the flash [patch half-widths]; fov: the photo's [deg]; low_size: the network's (h, w);
-        matte: (h', w') the diffuse's share of the photo (``matte_share``), at any size; None: 1.
+        matte: (h', w') the diffuse's share of the photo (``matte_share``), at any size; None: 1;
+        strength: the slope's factor, 1 the unit's own reading.
 
     Returns:
         (B, 2, H', W') the x and y slope to add to the normals at the photo's size (bilinear up
@@ -298,7 +300,7 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
     slope = slope - upsample_bilinear(downsample(slope, low_size), *size)
     if matte is not None:
         slope = slope * upsample_bilinear(matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER, *size)
-    return slope
+    return slope * strength
 
 
 def _noise_bin(level: torch.Tensor) -> torch.Tensor:

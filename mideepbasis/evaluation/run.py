@@ -13,7 +13,7 @@ import torch
 
 from .. import constants
 from ..capturing.refine import RefineConfig
-from ..configs import positive_int, unit_share
+from ..configs import non_negative, positive_int, unit_share
 from ..errors import InputError
 from .metrics import LPIPS, light_error_deg, map_rmse, rerender_rmse, score, summary_scores, trivial_baseline
 from .protocol import (RERENDER_COUNT, ROUGHNESS_GROUPS, evaluation_offsets, flash_photos, load_evaluation_materials,
@@ -94,6 +94,10 @@ class EvaluationConfig:
     fine_relief: bool | None = None
     """Read the normals' detail above the network's resolution with its normal unit, as ``capture
     --fine-relief`` does (``CaptureConfig.fine_relief``; None: capture's default)."""
+
+    fine_relief_strength: float | None = field(default=None, metadata={"parse": non_negative})
+    """The factor of the relief ``fine_relief`` reads, as ``capture --fine-relief-strength``
+    (``CaptureConfig.fine_relief_strength``; None: capture's default)."""
 
     denoise_detail: bool | None = None
     """Denoise the photo's fine contrast before the detail step adds it, as ``capture`` does
@@ -177,8 +181,8 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
 
 
 #: The fields an evaluation shares with ``CaptureConfig``, None in the evaluation for capture's default.
-SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "denoise_detail", "grey_specular",
-                         "specular_floor", "normal_strength", "lobe_variation")
+SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "fine_relief_strength", "denoise_detail",
+                         "grey_specular", "specular_floor", "normal_strength", "lobe_variation")
 
 
 def capture_options(config: EvaluationConfig | None) -> dict:

@@ -379,6 +379,10 @@ def test_the_report_says_what_the_detail_step_did():
     assert detail_summary({"offset": [0.0, 0.0]}) is None  # a provenance that does not say
     assert "normal unit reads" in detail_summary({**base, "normal_detail": 0.34, "fine_relief": True})
     assert "normal unit" not in detail_summary({**base, "normal_detail": 0.34})
+    assert "times 2.5 (--fine-relief-strength)" in detail_summary(
+        {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 2.5})
+    assert "--fine-relief-strength" not in detail_summary(
+        {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 1.0})
 
 
 def _matte_relief(family: str, seed: int, size: int) -> torch.Tensor:
@@ -470,6 +474,48 @@ def test_capture_reads_the_fine_relief_when_asked_from_four_times_the_network_si
     # Read only when asked, from 4 times the network's size on, and where the relief test keeps relief.
     assert {key: value[0] for key, value in used.items() if value[0]} == {("relief", 128, True): True}
     assert used["relief", 128, True][1] and not used["grain", 128, True][1]
+
+
+def test_the_fine_relief_strength_scales_the_relief_capture_adds_above_the_network(tmp_path):
+    from dataclasses import replace
+
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
+    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
+
+    def fine_tilts(strength: float) -> torch.Tensor:
+        """(2, 128, 128) the captured normals' tilt above the network's band."""
+        capture_config = CaptureConfig(light=(0.25, -0.15), resolution=128, network_resolution=LOW, symmetries=1,
+                                       refine=RefineConfig(steps=0), fine_relief=True, fine_relief_strength=strength)
+        result = Capturer(model, capture_config).capture(photo)
+        assert result.material.provenance["capture"]["fine_relief_strength"] == strength
+        normals = result.material.to_tensor()[constants.NORMAL]
+        tilts = normals[0:2] / normals[2:3]
+        return tilts - upsample_bilinear(downsample(tilts[None], (LOW, LOW)), 128, 128)[0]
+
+    without, read = fine_tilts(0.0), fine_tilts(1.0)
+    added = read - without
+    assert float(added.square().mean().sqrt()) > 1e-3  # the unit reads relief here
+    # The relief added is linear in the strength (to first order in the slope, as normals add it).
+    for strength in (0.5, 2.5):
+        scaled = fine_tilts(strength) - without
+        assert float((scaled - strength * added).square().mean().sqrt()) < 0.01 * strength * float(
+            added.square().mean().sqrt())
+
+
+def test_a_negative_fine_relief_strength_is_refused():
+    from mideepbasis.capturing import CaptureConfig
+    from mideepbasis.cli import main
+
+    with pytest.raises(ValueError, match="fine_relief_strength must be 0 or more, got -1"):
+        CaptureConfig(fine_relief_strength=-1.0)
+    with pytest.raises(SystemExit):
+        main(["capture", "photo.jpg", "-o", "out", "--fine-relief-strength", "-1"])
 
 
 def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
