@@ -508,7 +508,7 @@ def test_the_fine_relief_strength_scales_the_relief_capture_adds_above_the_netwo
             added.square().mean().sqrt())
 
 
-def test_a_negative_fine_relief_strength_is_refused():
+def test_a_negative_fine_relief_strength_is_refused(capsys):
     from mideepbasis.capturing import CaptureConfig
     from mideepbasis.cli import main
 
@@ -516,6 +516,7 @@ def test_a_negative_fine_relief_strength_is_refused():
         CaptureConfig(fine_relief_strength=-1.0)
     with pytest.raises(SystemExit):
         main(["capture", "photo.jpg", "-o", "out", "--fine-relief-strength", "-1"])
+    assert "--fine-relief-strength: must be 0 or more, got -1" in capsys.readouterr().err
 
 
 def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
