@@ -23,7 +23,8 @@ def wheel(tmp_path_factory) -> Path:
     in build/, hiding a package the list leaves out)."""
     folder = tmp_path_factory.mktemp("wheel")
     source = folder / "source"
-    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", ".venv", "runs", "build", "dist", "benchmarks",
+    # Not the virtual environments (.ci/run makes a 3 GB .venv-blender in the checkout) nor other outputs.
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", ".venv*", "runs", "build", "dist", "benchmarks",
                                                                 "tests", "__pycache__", "*.egg-info", "demo"))
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(folder),
                     str(source)], check=True, capture_output=True, cwd=folder)
