@@ -134,14 +134,12 @@ class CaptureConfig:
 
     def __post_init__(self):
         check_symmetries(self.symmetries)  # now, not at the first prediction
-        try:
-            unit_share(self.lobe_variation)  # the command line's check, for callers of the Python API
-        except ValueError as error:
-            raise ValueError(f"lobe_variation {error}") from None
-        try:
-            non_negative(self.fine_relief_strength)
-        except ValueError as error:
-            raise ValueError(f"fine_relief_strength {error}") from None
+        # The command line's checks, for callers of the Python API.
+        for name, check in (("lobe_variation", unit_share), ("fine_relief_strength", non_negative)):
+            try:
+                check(getattr(self, name))
+            except ValueError as error:
+                raise ValueError(f"{name} {error}") from None
 
 
 @dataclass(frozen=True)
