@@ -59,6 +59,12 @@ photo 00's contrast above the band) the other photos show where it is (``registr
 real protocol at full resolution can credit a detail step only with that. No capture, entry
 ``detail_registration``.
 
+``--relief-scales`` measures instead how the relief materials' slopes at the capture's ``--low``
+px compare between each material generated there and generated at ``--size`` px with its height
+area-averaged to ``--low`` px (``relief_scales``): the generator scales each relief to the tilt it
+draws at the size it draws at, so the larger material's relief is spread over finer octaves.
+No capture, entry ``detail_relief_scales``.
+
 Writes the figures as the entry ``detail`` of results/model_quality.json and the contact sheet (``--sheet``; ``--no-sheet`` skips it): for two
 relief materials and one flat textured one, the centre half of the sample (512 px at 1024): the
 photo, the true, upsampled and detailed diffuse, the true, upsampled and detailed normal.
@@ -72,6 +78,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import mideepbasis  # noqa: F401
 import numpy as np
 import torch
@@ -79,7 +86,8 @@ from common import RESULTS, write_section
 
 from mideepbasis import constants, geometry
 from mideepbasis.capturing import CaptureConfig, Capturer
-from mideepbasis.data.procedural import FAMILIES, generate
+from mideepbasis.data.procedural import FAMILIES, GeneratorConfig, generate, generate_surface
+from mideepbasis.data.procedural.core import height_to_normal
 from mideepbasis.evaluation import (DETAIL_BAND, above_band, evaluation_offsets, flash_photos, high_band_energy, map_rmse,
                                     random_lights_and_views, rerender)
 from mideepbasis.model.checkpoint import load_model
@@ -413,6 +421,36 @@ def visibility_report(chosen: list[dict], offsets: torch.Tensor, args, conventio
             "mean": means, "per_material": rows}
 
 
+def mean_tilt(height: np.ndarray) -> float:
+    """The mean angle [deg] between a height field's normals (``height_to_normal``) and the vertical."""
+    normal = height_to_normal(height, False)
+    return float(np.degrees(np.arccos(np.clip(normal[..., 2], -1.0, 1.0))).mean())
+
+
+def relief_scales(chosen: list[dict], size: int, low: int) -> dict:
+    """The relief materials' mean tilt [deg] at ``low`` px: generated at ``low`` px, and generated
+    at ``size`` px with the height area-averaged to ``low`` px (what the network's side of a
+    capture sees of it); beside it, the ``size`` px material's own mean tilt. Printed, and their
+    means."""
+    rows = []
+    print(f"{'material':36s} tilt at {low} px  {size} px seen at {low} px  at {size} px")
+    for material in chosen:
+        if material["kind"] != "relief":
+            continue
+        small, _, provenance = generate_surface(material["seed"], GeneratorConfig(size=low), material["family"])
+        large = generate_surface(material["seed"], GeneratorConfig(size=size), material["family"])[0].height
+        averaged = cv2.resize(large, (low, low), interpolation=cv2.INTER_AREA)
+        row = {**material, "variant": provenance["variant"], "tilt_low": mean_tilt(small.height),
+               "tilt_averaged": mean_tilt(averaged), "tilt_full": mean_tilt(large)}
+        rows.append(row)
+        print(f"{material['family'] + ' ' + row['variant']:36s} {row['tilt_low']:14.1f} {row['tilt_averaged']:22.1f} "
+              f"{row['tilt_full']:10.1f}", flush=True)
+    keys = ("tilt_low", "tilt_averaged", "tilt_full")
+    means = {key: float(np.mean([row[key] for row in rows])) for key in keys}
+    print(f"{'mean':36s} {means['tilt_low']:14.1f} {means['tilt_averaged']:22.1f} {means['tilt_full']:10.1f}")
+    return {"size": size, "low": low, "mean": means, "per_material": rows}
+
+
 def registration(folder: Path, band: int) -> list[dict]:
     """Photo 00 of the calibrated scene in ``folder`` against each other photo, at the photos' own
     size: the correlation of their luminance contrast above ``band`` px (``above_band`` over the
@@ -539,6 +577,9 @@ def main() -> None:
                         help="each relief under the next relief material's diffuse, roughness and specular, so "
                              "that its albedo does not follow its relief (with --visibility, or for the captures: "
                              "entries end in _swapped)")
+    parser.add_argument("--relief-scales", action="store_true",
+                        help="only measure the relief materials' mean tilt at --low px, generated at --low px and at "
+                             "--size px (relief_scales)")
     parser.add_argument("--registration", type=Path, default=None, metavar="DIR",
                         help="only measure how the fine detail of the calibrated scenes in DIR lines up across their "
                              "photos (registration)")
@@ -546,6 +587,13 @@ def main() -> None:
     if args.registration is not None:
         write_section(args.output, "detail_registration", "detail --registration",
                       registration_report(args.registration, args.band))
+        return
+
+    if args.relief_scales:
+        suffix = f"_seeds_{args.first_seed}" if args.first_seed != HELD_OUT_SEED else ""
+        write_section(args.output, "detail_relief_scales" + suffix,
+                      "detail --relief-scales" + (f" --first-seed {args.first_seed}" if suffix else ""),
+                      relief_scales(materials(args.materials, 0, args.first_seed), args.size, args.low))
         return
 
     model = load_model(args.model)

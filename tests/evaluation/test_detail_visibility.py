@@ -1,9 +1,12 @@
 """``benchmarks/detail.py``'s shading_visibility: a matte surface's fine relief shows in its flash
 photo as the first-order shading ``(l_xy / l_z) . dn_xy``, with slope 1."""
 
+import numpy as np
+import pytest
 import torch
 
 from mideepbasis import constants
+from mideepbasis.data.procedural import generate
 from mideepbasis.evaluation import flash_photos, high_band_energy
 
 from ..helpers import benchmark_module, matte_egg_crate
@@ -138,3 +141,25 @@ def test_the_true_detail_bound_keeps_the_answer_below_the_band_and_takes_the_tru
     assert float((bounded[:, constants.NORMAL] - truth[:, constants.NORMAL]).abs().max()) < 0.02
     # The truth gives itself back.
     assert torch.allclose(detail.with_true_detail(truth, truth, band), truth, atol=1e-5)
+
+
+def test_mean_tilt_of_a_plane_is_its_slope_angle():
+    detail = benchmark_module("detail")
+    x = np.linspace(-1.0, 1.0, 64, dtype=np.float32)  # the sample spans 2 patch half-widths
+    for slope in (0.05, 0.3, 1.0):
+        plane = np.broadcast_to(slope * x[None, :], (64, 64)).copy()
+        # Central differences of a linear ramp are exact; only the replicated edge columns halve the slope.
+        expected = (62 * np.degrees(np.arctan(slope * 64 / 63)) + 2 * np.degrees(np.arctan(slope * 32 / 63))) / 64
+        assert detail.mean_tilt(plane) == pytest.approx(expected, rel=1e-4)
+
+
+def test_relief_scales_read_each_size_as_its_material_leans():
+    detail = benchmark_module("detail")
+    chosen = detail.materials(2, 0)
+    report = detail.relief_scales(chosen, size=64, low=32)
+    assert [row["seed"] for row in report["per_material"]] == [m["seed"] for m in chosen]
+    for row in report["per_material"]:
+        for size, key in ((64, "tilt_full"), (32, "tilt_low")):
+            normal = generate(row["seed"], size=size, family=row["family"]).normal
+            tilt = float(torch.rad2deg(torch.acos(normal[2].clamp(-1, 1))).mean())
+            assert row[key] == pytest.approx(tilt, abs=0.01), (row["family"], size)
