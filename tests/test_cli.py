@@ -300,3 +300,19 @@ def test_a_16k_photo_at_native_resolution_is_refused_in_one_line_naming_the_limi
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "16384x16384" in err and f"limit of {constants.MAX_IMAGE_PIXELS} pixels" in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_four_by_three_photo_at_native_resolution_gets_maps_of_its_short_side(tmp_path, capsys):
+    from PIL import Image
+
+    from mideepbasis.render.api import example_capture_dir
+
+    # A phone's 4:3 frame whose short side, the working size, is no multiple of the network's 128 px.
+    square = Image.open(example_capture_dir() / "photo.jpg").convert("RGB").resize((400, 400), Image.BICUBIC)
+    photo = tmp_path / "phone.jpg"
+    square.crop((0, 50, 400, 350)).save(photo, quality=95)
+    assert run("capture", photo, "-o", tmp_path / "out", "--resolution", "native", "--refine-steps", "20") == 0
+    maps = Material.load(tmp_path / "out")
+    assert (maps.height, maps.width) == (300, 300)
+    provenance = maps.provenance["capture"]
+    assert provenance["detail_added"] and provenance["network_size"] == [128, 128]

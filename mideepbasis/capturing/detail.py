@@ -516,8 +516,11 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             if slope_rows is not None:
                 added[:, 0:2] += slope_rows(start, stop)
             maps[..., start:stop, :] += added
-            below[..., start // factor:-(-stop // factor), :] = downsample(
-                added, (-(-stop // factor) - start // factor, low_size[1]))
+            if banded:
+                below[..., start // factor:-(-stop // factor), :] = downsample(
+                    added, (-(-stop // factor) - start // factor, low_size[1]))
+            else:  # one band of every row, at a size that is no multiple of the network's
+                below[...] = downsample(added, low_size)
         below[:, constants.NORMAL] += made_up
         below_rows = _rows_at(below, height, width)
         for start in range(0, height, rows):

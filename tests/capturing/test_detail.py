@@ -107,6 +107,24 @@ def test_bands_of_rows_give_the_whole_image(monkeypatch):
     assert torch.allclose(banded, whole, atol=1e-5)
 
 
+@pytest.mark.parametrize("size", [250, 200])
+def test_a_size_that_is_no_multiple_of_the_networks_gets_its_detail_and_keeps_its_answer(size):
+    albedo, photo = textured_scene(1)
+    low, _ = upsampled_answer(albedo)
+    albedo, photo = downsample(albedo, size), downsample(photo, size)
+    maps = upsample_bilinear(low, size, size)
+    before = maps.clone()
+    detailed = detail.add_detail(maps, photo, low)
+    assert detailed.shape == (1, 10, size, size)
+    diffuse = detailed[:, constants.DIFFUSE]
+    ratio = float(high_band(diffuse, size).square().sum() / high_band(albedo, size).square().sum())
+    low_ratio, high_ratio = TOLERANCES["energy_ratio"]
+    assert low_ratio <= ratio <= high_ratio, ratio
+    low_band = lambda m: gaussian_blur(downsample(m, LOW), 1.0, padding="replicate")  # noqa: E731
+    change = float((low_band(detailed) - low_band(before))[:, constants.DIFFUSE].abs().mean())
+    assert change < TOLERANCES["low_band"], change
+
+
 def _noisy(photo: torch.Tensor, shot: float, read: float, seed: int = 0) -> torch.Tensor:
     """``photo`` with shot noise of variance ``shot`` per unit of signal and read noise of standard
     deviation ``read`` (a camera's, before its tone curve)."""
