@@ -15,6 +15,9 @@ threads; for the commands, their processes') [s]:
   ``command_paper`` with the paper's refinement, ``command_1024`` and ``command_2048`` with the
   photo processed at that resolution (the capture targets are for these whole commands),
   ``command_no_shapes`` without the sphere and cloth previews (what those two images cost);
+  ``command_phone_native`` on a phone's 12 MP frame (4032 x 3024 JPEG, the bundled photo
+  upscaled and cropped, made first) at ``--resolution native``: 3024 px maps, a size that is no
+  multiple of the network's;
 - ``search_refine_1024``: as ``search_refine`` with the photo processed at 1024x1024 (in one
   process with earlier repeats, so its peak memory holds two captures);
 - ``batch`` (``--batch N``, default 50): ``mideepbasis capture FOLDER -o OUT`` on N procedural
@@ -47,13 +50,17 @@ sys.path.insert(0, str(Path(__file__).parent))
 from common import RESULTS, write_report  # noqa: E402
 TARGETS_S = {"known_light": 0.5, "search": 1.0, "search_refine": 1.2, "search_refine_paper": 4.0, "command": 3.0,
              "search_refine_1024": 5.0, "command_paper": 4.0, "command_1024": 5.0, "command_2048": 15.0,
-             "command_4096": 80.0, "command_no_shapes": 3.0}
+             "command_4096": 80.0, "command_no_shapes": 3.0, "command_phone_native": 80.0}
 
 #: Whole ``mideepbasis capture`` commands timed from outside: name -> options.
 COMMANDS = {"command": (), "command_paper": ("--refine-steps", "500", "--refine-normals", "--refine-lr", "0.01",
                                              "--refine-lr-schedule", "constant"),
             "command_1024": ("--resolution", "1024"), "command_2048": ("--resolution", "2048"),
-            "command_4096": ("--resolution", "4096"), "command_no_shapes": ("--no-shape-previews",)}
+            "command_4096": ("--resolution", "4096"), "command_no_shapes": ("--no-shape-previews",),
+            "command_phone_native": ("--resolution", "native")}
+
+#: Commands run on a photo of their own instead of the bundled one: name -> (width, height) [pixels].
+PHOTO_SIZES = {"command_phone_native": (4032, 3024)}
 CONFIGURATIONS = {
     "known_light": {"light": (0.25, -0.17), "refine": {"steps": 0}, "resolution": 256},
     "search": {"light": None, "refine": {"steps": 0}, "resolution": 256},
@@ -89,11 +96,29 @@ def measure(name: str, model: str | None, repeats: int) -> dict:
             "peak_memory_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def measure_command(model: str | None, repeats: int, extra: tuple[str, ...] = ()) -> dict:
-    """Times the whole command (with the options ``extra``) in fresh processes; the largest peak memory among them."""
+def phone_photo(path: Path, size: tuple[int, int]) -> Path:
+    """The bundled photo upscaled (bicubic) to the width of ``size`` (width, height) and cropped to
+    its height about the centre, written as a JPEG: a phone's frame of the same scene."""
+    from PIL import Image
+
     from mideepbasis.render.api import example_capture_dir
 
-    photo = example_capture_dir() / "photo.jpg"
+    width, height = size
+    square = Image.open(example_capture_dir() / "photo.jpg").convert("RGB").resize((width, width), Image.BICUBIC)
+    top = (width - height) // 2
+    square.crop((0, top, width, top + height)).save(path, quality=92)
+    return path
+
+
+def measure_command(model: str | None, repeats: int, extra: tuple[str, ...] = (),
+                    photo_size: tuple[int, int] | None = None) -> dict:
+    """Times the whole command (with the options ``extra``) in fresh processes, on the bundled photo or
+    on a phone's frame of ``photo_size`` (``phone_photo``); the largest peak memory among them."""
+    from mideepbasis.render.api import example_capture_dir
+
+    photos = tempfile.TemporaryDirectory()
+    photo = (phone_photo(Path(photos.name) / "phone.jpg", photo_size) if photo_size
+             else example_capture_dir() / "photo.jpg")
     runs, cpu, peak = [], [], 0.0
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as folder:
@@ -106,8 +131,10 @@ def measure_command(model: str | None, repeats: int, extra: tuple[str, ...] = ()
             runs.append(time.perf_counter() - start)
             cpu.append(children_cpu_s() - before)
             peak = max(peak, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024)
+    photos.cleanup()
     return {"median_s": statistics.median(runs), "runs_s": [round(r, 3) for r in runs],
-            "cpu_median_s": round(statistics.median(cpu), 3), "peak_memory_mib": peak}
+            "cpu_median_s": round(statistics.median(cpu), 3), "peak_memory_mib": peak,
+            **({"photo_size": list(photo_size)} if photo_size else {})}
 
 
 def children_cpu_s() -> float:
@@ -179,7 +206,8 @@ def main() -> None:
             print(json.dumps(measure_batch(args.model, args.batch, extra)))
             return
         if args.child in COMMANDS:
-            print(json.dumps(measure_command(args.model, args.repeats, COMMANDS[args.child])))
+            print(json.dumps(measure_command(args.model, args.repeats, COMMANDS[args.child],
+                                             PHOTO_SIZES.get(args.child))))
             return
         child = lambda *a: measure(args.child, *a)  # noqa: E731
         print(json.dumps(child(args.model, args.repeats)))
@@ -199,7 +227,8 @@ def main() -> None:
                   f"{results[name]['photos_per_second_after_first']:.2f} photos/s after the first "
                   f"(target 1), peak {results[name]['peak_memory_mib']:.0f} MiB")
             continue
-        repeats = args.repeats if "1024" not in name and "4096" not in name else max(2, args.repeats // 2)
+        large = any(size in name for size in ("1024", "4096", "phone"))
+        repeats = max(2, args.repeats // 2) if large else args.repeats
         command = [sys.executable, __file__, "--child", name, "--repeats", str(repeats)]
         if args.model:
             command += ["--model", args.model]
