@@ -126,7 +126,10 @@ def parse_resolution(text: str) -> int | str:
     """A working resolution from its text: ``native``, or pixels (at least ``MIN_PHOTO_SIZE``)."""
     if text == "native":
         return text
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"expected native or a size in pixels, got {text!r}") from None
     if not MIN_PHOTO_SIZE <= value <= MAX_NATIVE_RESOLUTION:
         raise ValueError(f"the resolution must be native or {MIN_PHOTO_SIZE} to {MAX_NATIVE_RESOLUTION} pixels, "
                          f"got {value}")

@@ -403,6 +403,8 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
     summary = {"protocol": "real (calibrated scenes)", "data": str(config.data), "model": config.model or "shipped",
                "input_photo": config.input_photo, "scenes": {name: r["rows"] for name, r in results.items()},
                "rows": rows, "n_scenes": len(results), "notes": notes,
+               "working_resolution": capture_config.resolution,
+               "compared_at": {name: int(r["photos"].shape[-1]) for name, r in results.items()},
                "refine": dataclasses.asdict(capture_config.refine),
                "seconds": time.perf_counter() - started}
     write_real_evaluation(out, summary, results)

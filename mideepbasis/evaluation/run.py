@@ -47,6 +47,17 @@ def environments(text: str) -> tuple[str, ...]:
     return parse_environments(text)
 
 
+def evaluation_resolution(text: str) -> int | str:
+    """``evaluate --resolution``: ``native``, or a size [pixels] (a positive integer)."""
+    if text == "native":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"expected native or a size in pixels, got {text!r}") from None
+    return positive_int(value)
+
+
 @dataclass(frozen=True)
 class EvaluationConfig:
     """An evaluation run (``mideepbasis evaluate``)."""
@@ -141,9 +152,12 @@ class EvaluationConfig:
     limit: int | None = field(default=None, metadata={"parse": positive_int})
     """Evaluate only the first this many materials (quick runs)."""
 
-    resolution: int | None = field(default=None, metadata={"parse": positive_int})
-    """Resample the materials to this size first [pixels] (None: as stored); ``calibrated``: the
-    capture's working resolution, at which the photos are compared (None: capture's)."""
+    resolution: int | str | None = field(default=None, metadata={"parse": evaluation_resolution,
+                                                                 "metavar": "N|native"})
+    """Resample the materials to this size first [pixels] (None or ``native``: as stored);
+    ``calibrated``: the capture's working resolution, at which the photos are compared (None:
+    capture's; ``native``: each scene's photos at their own size, as ``capture --resolution
+    native`` takes them)."""
 
     upsampled_from: int | None = field(default=None, metadata={"parse": positive_int})
     """``calibrated``: also a row captured at this working resolution [pixels] whose maps are
@@ -272,7 +286,7 @@ def _run_evaluation(config: EvaluationConfig, out: Path, started: float, progres
     repaired = materials.repaired_pixels
     if config.limit:
         names, truth, stored, repaired = names[:config.limit], truth[:config.limit], stored[:config.limit], repaired[:config.limit]
-    if config.resolution and config.resolution != truth.shape[-1]:
+    if isinstance(config.resolution, int) and config.resolution != truth.shape[-1]:
         truth = torch.stack([resize_maps(m, config.resolution) for m in truth])
         stored = torch.stack([resize_maps(m, config.resolution) for m in stored])
     model = load_model(config.model)

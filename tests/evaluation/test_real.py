@@ -128,6 +128,30 @@ def test_the_command_runs_the_protocol_and_skips_a_bad_scene(tmp_path, capsys):
     assert (out / "sheets" / "good.png").is_file() and "| capture (default) |" in (out / "table.md").read_text()
 
 
+def test_native_resolution_compares_each_scene_at_its_photos_own_size(tmp_path, capsys):
+    model = tiny_model(tmp_path)
+    data = tmp_path / "scenes"
+    write_scene(data / "small", known_material(64), positions_cm())
+    out = tmp_path / "out"
+    assert cli.main(["evaluate", "--data", str(data), "--model", str(model), "-o", str(out), "--symmetries", "1",
+                     "--refine-steps", "0", "--resolution", "native"]) == 0
+    capsys.readouterr()
+    summary = json.loads((out / "summary.json").read_text())
+    # At the photos' own 64 px, where capture's default would resample them to 256 px.
+    assert summary["working_resolution"] == "native" and summary["compared_at"] == {"small": 64}
+    assert summary["rows"][real.CAPTURE_ROW]["rmse"] > 0
+
+
+def test_the_evaluation_resolution_is_native_or_pixels_with_a_one_line_error():
+    from mideepbasis.evaluation.run import evaluation_resolution
+
+    assert evaluation_resolution("native") == "native" and evaluation_resolution("512") == 512
+    with pytest.raises(ValueError, match="expected native or a size in pixels, got 'nat'"):
+        evaluation_resolution("nat")
+    with pytest.raises(ValueError, match="positive integer, got 0"):
+        evaluation_resolution("0")
+
+
 def test_validation_scenes_are_calibrated_scenes_with_their_truth(tmp_path):
     from mideepbasis.data.scenes import PHOTOS_PER_SCENE, make_scenes
 
