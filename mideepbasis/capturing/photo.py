@@ -122,14 +122,21 @@ def _checked_crop(path: Path, crop, width: int, height: int) -> tuple[int, int, 
     return x, y, w, h
 
 
-def parse_resolution(text: str) -> int | str:
-    """A working resolution from its text: ``native``, or pixels (at least ``MIN_PHOTO_SIZE``)."""
+def native_or_pixels(text: str) -> int | str:
+    """``native``, or the whole number of pixels the text holds; else a one-line error naming both."""
     if text == "native":
         return text
     try:
-        value = int(text)
+        return int(text)
     except ValueError:
         raise ValueError(f"expected native or a size in pixels, got {text!r}") from None
+
+
+def parse_resolution(text: str) -> int | str:
+    """A working resolution from its text: ``native``, or pixels (at least ``MIN_PHOTO_SIZE``)."""
+    value = native_or_pixels(text)
+    if value == "native":
+        return value
     if not MIN_PHOTO_SIZE <= value <= MAX_NATIVE_RESOLUTION:
         raise ValueError(f"the resolution must be native or {MIN_PHOTO_SIZE} to {MAX_NATIVE_RESOLUTION} pixels, "
                          f"got {value}")

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from .. import constants
+from ..capturing.photo import native_or_pixels
 from ..capturing.refine import RefineConfig
 from ..configs import non_negative, positive_int, unit_share
 from ..errors import InputError
@@ -49,13 +50,8 @@ def environments(text: str) -> tuple[str, ...]:
 
 def evaluation_resolution(text: str) -> int | str:
     """``evaluate --resolution``: ``native``, or a size [pixels] (a positive integer)."""
-    if text == "native":
-        return text
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"expected native or a size in pixels, got {text!r}") from None
-    return positive_int(value)
+    value = native_or_pixels(text)
+    return value if value == "native" else positive_int(value)
 
 
 @dataclass(frozen=True)
