@@ -64,9 +64,83 @@ class BatchItem:
     worker died): nothing was written."""
 
 
-def default_workers(photos: int) -> int:
-    """One worker per core, at most one per photo."""
-    return max(1, min(photos, os.cpu_count() or 1))
+#: Peak memory of one capture [GiB] by working resolution [pixels]: the whole command on the
+#: bundled photo (``benchmarks/capture.py``: 0.76, 1.23, 2.37 and 2.65 GiB; above 2048 px the maps
+#: are blended and detailed in bands), rounded up; linear in the side between these sizes.
+CAPTURE_MEMORY_GIB = ((256, 0.8), (1024, 1.3), (2048, 2.5), (4096, 2.8))
+
+
+def capture_memory_gib(resolution: int) -> float:
+    """About the most memory [GiB] one capture at ``resolution`` pixels takes (``CAPTURE_MEMORY_GIB``)."""
+    sizes = CAPTURE_MEMORY_GIB
+    if resolution <= sizes[0][0]:
+        return sizes[0][1]
+    for (small, low), (large, high) in zip(sizes, sizes[1:]):
+        if resolution <= large:
+            return low + (high - low) * (resolution - small) / (large - small)
+    return sizes[-1][1]
+
+
+def available_memory_gib() -> float | None:
+    """Memory free for new processes [GiB]: Linux's MemAvailable, else the free physical pages;
+    None where neither is known."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) / 2**20  # kB
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2**30
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def largest_working_resolution(photos: list[Path], config) -> int:
+    """The largest working resolution [pixels] among the photos under ``config`` (a ``CaptureConfig``):
+    its resolution, or for ``native`` the side of each photo's centre square (or crop) up to the
+    most, read from the headers; the most where a header cannot be read."""
+    from .capturing.photo import MAX_NATIVE_RESOLUTION, working_resolution
+
+    if config.resolution != "native":
+        return int(config.resolution)
+    if config.crop is not None:
+        return working_resolution(min(config.crop[2:]), "native")
+    from .errors import MideepbasisError
+    from .imageio import image_size
+
+    largest = 0
+    for photo in photos:
+        try:
+            largest = max(largest, working_resolution(min(image_size(photo)), "native"))
+        except (MideepbasisError, OSError):
+            return MAX_NATIVE_RESOLUTION  # its worker says what is wrong with it
+        if largest >= MAX_NATIVE_RESOLUTION:
+            break
+    return largest
+
+
+def default_workers(photos: int, memory_gib: float | None = None, available_gib: float | None = None) -> int:
+    """One worker per core, at most one per photo, and no more than ``available_gib`` [GiB] holds
+    when each takes ``memory_gib`` (either None: no such bound); at least one."""
+    workers = max(1, min(photos, os.cpu_count() or 1))
+    if memory_gib and available_gib is not None:
+        workers = max(1, min(workers, int(available_gib // memory_gib)))
+    return workers
+
+
+def batch_workers(photos: list[Path], config) -> tuple[int, str | None]:
+    """The workers a local batch of ``photos`` starts under ``config`` (``default_workers`` bounded by
+    this machine's free memory at the largest working resolution), and a note where memory, not
+    the cores, set their number."""
+    resolution = largest_working_resolution(photos, config)
+    memory, available = capture_memory_gib(resolution), available_memory_gib()
+    workers, by_cores = default_workers(len(photos), memory, available), default_workers(len(photos))
+    if workers >= by_cores:
+        return workers, None
+    return workers, (f"{workers} worker{'s' * (workers > 1)} rather than {by_cores}: a capture at {resolution} px takes "
+                     f"about {memory:.1f} GiB and {available:.1f} GiB is free (set --workers to choose)")
 
 
 def die_with_parent(parent: int) -> None:
@@ -196,7 +270,8 @@ def capture_batch(photos: list[Path], out: Path, model=None, config=None, option
         model: a checkpoint path, or None for the shipped model (each worker loads it once).
         config: the ``CaptureConfig`` of every capture (None: the defaults).
         options: what is written per photo.
-        workers: worker processes (None: one per core, at most one per photo).
+        workers: worker processes (None: ``batch_workers``: one per core, at most one per photo,
+            as many as the free memory holds).
         overwrite: write into an ``out`` that is not empty (each photo's folder is replaced only
             where the tool wrote it, ``outputs.OutputFolder``).
 
@@ -217,7 +292,7 @@ def _run_batch(photos: list[Path], out: Path, model, config, options: SaveOption
     from .capturing.pipeline import CaptureConfig
 
     config = config or CaptureConfig()
-    workers = workers or default_workers(len(photos))
+    workers = workers or batch_workers(photos, config)[0]
     model = str(model) if model is not None else None
     # spawn, not fork: drjit's and torch's thread pools do not survive a fork.
     context = multiprocessing.get_context("spawn")

@@ -211,8 +211,14 @@ def _capture_batch(photos: list[Path], args, config) -> int:
 
         items = cluster_batch(photos, args.output, args.cluster, args.model, config, options, overwrite=args.overwrite)
     else:
-        items = capture_batch(photos, args.output, args.model, config, options, args.workers,
-                              overwrite=args.overwrite)
+        from .batch import batch_workers
+
+        workers = args.workers
+        if workers is None:
+            workers, note = batch_workers(photos, config)
+            if note:
+                print(f"mideepbasis: note: {note}")
+        items = capture_batch(photos, args.output, args.model, config, options, workers, overwrite=args.overwrite)
     for item in tqdm(items, total=len(photos), desc="capturing", unit="photo"):
         if item.repeated:  # a cluster's task run again after its worker died, the folder written before
             tqdm.write(f"{item.photo.name}: written by this batch already -> {item.target}")

@@ -72,3 +72,63 @@ def test_a_batch_refuses_clashing_names_and_a_model_that_does_not_load_before_an
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and "missing.safetensors: no such checkpoint file" in error[0]
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_capture_memory_follows_the_measured_sizes_and_is_linear_between():
+    from mideepbasis.batch import CAPTURE_MEMORY_GIB, capture_memory_gib
+
+    for size, memory in CAPTURE_MEMORY_GIB:
+        assert capture_memory_gib(size) == memory
+    (small, low), (large, high) = CAPTURE_MEMORY_GIB[1:3]
+    assert abs(capture_memory_gib((small + large) // 2) - (low + high) / 2) < 1e-9
+    assert capture_memory_gib(64) == CAPTURE_MEMORY_GIB[0][1] and capture_memory_gib(8192) == CAPTURE_MEMORY_GIB[-1][1]
+
+
+def test_default_workers_are_the_cores_bounded_by_the_photos_and_the_free_memory(monkeypatch):
+    from mideepbasis import batch
+
+    monkeypatch.setattr(batch.os, "cpu_count", lambda: 4)
+    assert batch.default_workers(10) == 4 and batch.default_workers(3) == 3
+    assert batch.default_workers(10, memory_gib=2.8, available_gib=6.0) == 2  # 6 // 2.8
+    assert batch.default_workers(10, memory_gib=2.8, available_gib=1.0) == 1  # one at least
+    assert batch.default_workers(10, memory_gib=0.8, available_gib=64.0) == 4
+    assert batch.default_workers(10, memory_gib=2.8, available_gib=None) == 4  # not known: the cores
+
+
+def test_batch_workers_read_native_sizes_from_the_headers_and_say_when_memory_bounds_them(tmp_path, monkeypatch):
+    from mideepbasis import batch
+    from mideepbasis.capturing import CaptureConfig
+
+    photos = [photo_file(tmp_path, "wide.png", size=(300, 200)), photo_file(tmp_path, "small.jpg", size=(120, 90))]
+    assert batch.largest_working_resolution(photos, CaptureConfig(resolution="native")) == 200
+    assert batch.largest_working_resolution(photos, CaptureConfig(resolution="native", crop=(0, 0, 150, 100))) == 100
+    assert batch.largest_working_resolution(photos, CaptureConfig(resolution=1024)) == 1024
+    assert batch.largest_working_resolution([tmp_path / "missing.jpg"], CaptureConfig(resolution="native")) == 4096
+
+    monkeypatch.setattr(batch.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(batch, "available_memory_gib", lambda: 64.0)
+    assert batch.batch_workers(photos, CaptureConfig(resolution=4096)) == (2, None)
+    monkeypatch.setattr(batch, "available_memory_gib", lambda: 3.0)
+    workers, note = batch.batch_workers(photos, CaptureConfig(resolution=4096))
+    assert workers == 1 and "1 worker rather than 2" in note and "4096 px" in note and "3.0 GiB is free" in note
+
+
+def test_the_command_says_when_memory_bounds_the_workers(tmp_path, monkeypatch, capsys):
+    from mideepbasis import batch
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for name in ("a.png", "b.png"):
+        photo_file(folder, name, size=(64, 64))
+    monkeypatch.setattr(batch.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(batch, "available_memory_gib", lambda: 1.0)
+    started = {}
+
+    def no_capture(photos, out, model, config, options, workers, overwrite=False):
+        started["workers"] = workers
+        return iter(())
+
+    monkeypatch.setattr(batch, "capture_batch", no_capture)
+    assert run_cli("capture", folder, "-o", tmp_path / "out", "--resolution", "64") == 0
+    assert started["workers"] == 1
+    assert "mideepbasis: note: 1 worker rather than 2" in capsys.readouterr().out
