@@ -130,6 +130,17 @@ def default_workers(photos: int, memory_gib: float | None = None, available_gib:
     return workers
 
 
+def memory_note(photo: Path, config) -> str | None:
+    """A note where one capture of ``photo`` under ``config`` needs more memory than is free (it
+    would swap), else None."""
+    resolution = largest_working_resolution([photo], config)
+    memory, available = capture_memory_gib(resolution), available_memory_gib()
+    if available is None or memory <= available:
+        return None
+    return (f"a capture at {resolution} px takes about {memory:.1f} GiB and {available:.1f} GiB is free: "
+            "it may swap (a lower --resolution takes less)")
+
+
 def batch_workers(photos: list[Path], config) -> tuple[int, str | None]:
     """The workers a local batch of ``photos`` starts under ``config`` (``default_workers`` bounded by
     this machine's free memory at the largest working resolution), and a note where memory, not

@@ -178,6 +178,11 @@ def _run_capture(args) -> int:
         return _capture_batch(photos, args, config)
     # Checked and locked before the work: a refusal comes first, and no other command writes it meanwhile.
     folder = OutputFolder(args.output, overwrite=args.overwrite, inputs=inputs)
+    from .batch import memory_note
+
+    note = memory_note(photos[0], config)
+    if note:
+        print(f"mideepbasis: note: {photos[0].name}: {note}")
     try:
         capturer = Capturer(args.model, config)
         result = capturer.capture(photos[0], progress=True)

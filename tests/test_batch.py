@@ -132,3 +132,26 @@ def test_the_command_says_when_memory_bounds_the_workers(tmp_path, monkeypatch, 
     assert run_cli("capture", folder, "-o", tmp_path / "out", "--resolution", "64") == 0
     assert started["workers"] == 1
     assert "mideepbasis: note: 1 worker rather than 2" in capsys.readouterr().out
+
+
+def test_one_capture_says_when_it_needs_more_memory_than_is_free(tmp_path, monkeypatch, capsys):
+    from mideepbasis import batch
+    from mideepbasis.capturing import CaptureConfig
+
+    photo = photo_file(tmp_path, "big.png", size=(300, 200))
+    monkeypatch.setattr(batch, "available_memory_gib", lambda: 1.0)
+    note = batch.memory_note(photo, CaptureConfig(resolution=4096))
+    assert "4096 px takes about 2.8 GiB and 1.0 GiB is free" in note
+    assert batch.memory_note(photo, CaptureConfig(resolution="native")) is None  # 200 px: 0.8 GiB
+    monkeypatch.setattr(batch, "available_memory_gib", lambda: None)
+    assert batch.memory_note(photo, CaptureConfig(resolution=4096)) is None  # not known: nothing said
+
+
+def test_the_capture_command_prints_the_memory_note(tmp_path, tiny_checkpoint, monkeypatch, capsys):
+    from mideepbasis import batch
+
+    photo = photo_file(tmp_path, "a.png", size=(64, 64))
+    monkeypatch.setattr(batch, "available_memory_gib", lambda: 0.5)
+    assert run_cli("capture", photo, "-o", tmp_path / "out", "--model", tiny_checkpoint, "--resolution", "64",
+                   "--refine-steps", "5", "--light", "0,0", "--no-shape-previews") == 0
+    assert "mideepbasis: note: a.png: a capture at 64 px takes about 0.8 GiB and 0.5 GiB is free" in capsys.readouterr().out
