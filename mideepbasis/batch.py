@@ -130,11 +130,17 @@ def default_workers(photos: int, memory_gib: float | None = None, available_gib:
     return workers
 
 
+def memory_need(photos: list[Path], config) -> tuple[int, float, float | None]:
+    """(the largest working resolution [pixels] of ``photos`` under ``config``, one capture's memory
+    there [GiB], the memory free [GiB] or None where it is not known)."""
+    resolution = largest_working_resolution(photos, config)
+    return resolution, capture_memory_gib(resolution), available_memory_gib()
+
+
 def memory_note(photo: Path, config) -> str | None:
     """A note where one capture of ``photo`` under ``config`` needs more memory than is free (it
     would swap), else None."""
-    resolution = largest_working_resolution([photo], config)
-    memory, available = capture_memory_gib(resolution), available_memory_gib()
+    resolution, memory, available = memory_need([photo], config)
     if available is None or memory <= available:
         return None
     return (f"a capture at {resolution} px takes about {memory:.1f} GiB and {available:.1f} GiB is free: "
@@ -145,13 +151,12 @@ def batch_workers(photos: list[Path], config) -> tuple[int, str | None]:
     """The workers a local batch of ``photos`` starts under ``config`` (``default_workers`` bounded by
     this machine's free memory at the largest working resolution), and a note where memory, not
     the cores, set their number."""
-    resolution = largest_working_resolution(photos, config)
-    memory, available = capture_memory_gib(resolution), available_memory_gib()
+    resolution, memory, available = memory_need(photos, config)
     workers, by_cores = default_workers(len(photos), memory, available), default_workers(len(photos))
     if workers >= by_cores:
         return workers, None
-    return workers, (f"{workers} worker{'s' * (workers > 1)} rather than {by_cores}: a capture at {resolution} px takes "
-                     f"about {memory:.1f} GiB and {available:.1f} GiB is free (set --workers to choose)")
+    return workers, (f"{workers} worker{'s' * (workers > 1)} rather than {by_cores}: a capture at {resolution} px "
+                     f"takes about {memory:.1f} GiB and {available:.1f} GiB is free (set --workers to choose)")
 
 
 def die_with_parent(parent: int) -> None:
