@@ -116,22 +116,21 @@ def measure_command(model: str | None, repeats: int, extra: tuple[str, ...] = ()
     on a phone's frame of ``photo_size`` (``phone_photo``); the largest peak memory among them."""
     from mideepbasis.render.api import example_capture_dir
 
-    photos = tempfile.TemporaryDirectory()
-    photo = (phone_photo(Path(photos.name) / "phone.jpg", photo_size) if photo_size
-             else example_capture_dir() / "photo.jpg")
-    runs, cpu, peak = [], [], 0.0
-    for _ in range(repeats):
-        with tempfile.TemporaryDirectory() as folder:
-            command = [sys.executable, "-m", "mideepbasis.cli", "capture", str(photo), "-o", str(Path(folder) / "out"),
-                       *extra]
-            if model:
-                command += ["--model", model]
-            start, before = time.perf_counter(), children_cpu_s()
-            subprocess.run(command, check=True, capture_output=True)
-            runs.append(time.perf_counter() - start)
-            cpu.append(children_cpu_s() - before)
-            peak = max(peak, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024)
-    photos.cleanup()
+    with tempfile.TemporaryDirectory() as photos:  # the phone frame, where there is one
+        photo = (phone_photo(Path(photos) / "phone.jpg", photo_size) if photo_size
+                 else example_capture_dir() / "photo.jpg")
+        runs, cpu, peak = [], [], 0.0
+        for _ in range(repeats):
+            with tempfile.TemporaryDirectory() as folder:
+                command = [sys.executable, "-m", "mideepbasis.cli", "capture", str(photo),
+                           "-o", str(Path(folder) / "out"), *extra]
+                if model:
+                    command += ["--model", model]
+                start, before = time.perf_counter(), children_cpu_s()
+                subprocess.run(command, check=True, capture_output=True)
+                runs.append(time.perf_counter() - start)
+                cpu.append(children_cpu_s() - before)
+                peak = max(peak, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024)
     return {"median_s": statistics.median(runs), "runs_s": [round(r, 3) for r in runs],
             "cpu_median_s": round(statistics.median(cpu), 3), "peak_memory_mib": peak,
             **({"photo_size": list(photo_size)} if photo_size else {})}
