@@ -51,6 +51,8 @@ thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_se
 ``--fine-relief-strength S`` other than 1 (``CaptureConfig.fine_relief_strength``) in ``_fine_relief_S``.
 ``--denoise`` captures with the photo's fine contrast denoised (``CaptureConfig.denoise_detail``):
 its entries end in ``_denoised``.
+``--no-keep-lobe-peak`` captures with the roughness as refined under the normals' detail
+(``CaptureConfig.keep_lobe_peak`` False): its entries end in ``_lobe_unkept``.
 ``--swap-reflectance`` without ``--visibility`` captures the relief materials so photographed:
 entries end in ``_swapped``.
 
@@ -571,6 +573,9 @@ def main() -> None:
     parser.add_argument("--denoise", action="store_true",
                         help="capture with the photo's fine contrast denoised (CaptureConfig.denoise_detail); "
                              "entries end in _denoised")
+    parser.add_argument("--no-keep-lobe-peak", action="store_true",
+                        help="capture with the roughness as refined under the normals' detail "
+                             "(CaptureConfig.keep_lobe_peak False); entries end in _lobe_unkept")
     parser.add_argument("--visibility", action="store_true",
                         help="only measure how much of the true fine relief the photos show (shading_visibility)")
     parser.add_argument("--swap-reflectance", action="store_true",
@@ -599,7 +604,8 @@ def main() -> None:
     model = load_model(args.model)
     fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
     base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test, fine_relief=args.fine_relief,
-                         fine_relief_strength=args.fine_relief_strength, denoise_detail=args.denoise)
+                         fine_relief_strength=args.fine_relief_strength, denoise_detail=args.denoise,
+                         keep_lobe_peak=not args.no_keep_lobe_peak)
     if args.refine_steps is not None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
     chosen = materials(args.materials, args.flat, args.first_seed)
@@ -618,6 +624,8 @@ def main() -> None:
         command_suffix += f" --fine-relief-strength {args.fine_relief_strength:g}"
     key_suffix += "_denoised" if args.denoise else ""
     command_suffix += " --denoise" if args.denoise else ""
+    key_suffix += "_lobe_unkept" if args.no_keep_lobe_peak else ""
+    command_suffix += " --no-keep-lobe-peak" if args.no_keep_lobe_peak else ""
     if not args.visibility:
         key_suffix += "_swapped" if args.swap_reflectance else ""
         command_suffix += " --swap-reflectance" if args.swap_reflectance else ""
@@ -708,7 +716,7 @@ def main() -> None:
               "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
               "first_seed": args.first_seed, "fine_relief": args.fine_relief,
               "fine_relief_strength": args.fine_relief_strength,
-              "denoise_detail": args.denoise,
+              "denoise_detail": args.denoise, "keep_lobe_peak": not args.no_keep_lobe_peak,
               "swap_reflectance": args.swap_reflectance, "groups": groups, "per_material": records}
     if args.photo_jitter > 0:
         write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}{key_suffix}",

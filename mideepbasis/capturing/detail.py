@@ -38,6 +38,12 @@ network's normal unit, which reads relief from a flash photo's shading, run once
 itself (at up to ``FINE_RELIEF_SIZE``), its slope above the network's band weighted by each
 pixel's diffuse share (glints are the specular's, not relief) and put in place of the photo's
 contrast times the normals' gains, scaled by the relief test's gain all the same.
+
+Fine normals, read either way, spread the specular lobe, and the refinement fitted the lobe to the
+photo without them: with ``add_detail``'s ``keep_lobe_peak`` (``CaptureConfig.keep_lobe_peak``)
+the roughness is narrowed under the normals' detail so that each network pixel's mean specular
+peak stays as it was (``lobe_peak_factors``), and the highlights under other lights keep their
+brightness.
 """
 
 from __future__ import annotations
@@ -453,7 +459,8 @@ def detail_gains(low_maps: torch.Tensor, contrast: torch.Tensor, window: int = W
 
 def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
                normal_gain: float = 1.0, albedo_share: float = 0.0,
-               fine_slope: torch.Tensor | None = None, denoise: bool = False) -> torch.Tensor:
+               fine_slope: torch.Tensor | None = None, denoise: bool = False, keep_lobe_peak: bool = False,
+               slope_scale: float = 1.0) -> torch.Tensor:
     """``maps`` with the photo's detail above the resolution of ``low_maps`` (module docstring).
 
     Args:
@@ -470,6 +477,10 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             place of the photo's contrast times their gains; None: those.
         denoise: the photo's fine contrast denoised first (``denoise_contrast``, the noise measured
             from the photo by ``photo_noise``); False: as it is.
+        keep_lobe_peak: narrow the roughness where the normals get detail, so that each network
+            pixel's mean specular peak stays as it was (``lobe_peak_factors``).
+        slope_scale: the factor the normals' slopes are rendered at (``CaptureConfig.normal_strength``,
+            applied after): the added tilts are measured at it.
 
     Returns:
         (B, 10, H, W).
@@ -496,6 +507,8 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
         # The detail, and what it holds below the network's resolution, which is taken out again:
         # the network's answer there stays as it is.
         below = maps.new_empty(maps.shape[0], maps.shape[1], *low_size)
+        # The normals' added x and y, for the tilts the lobe's peak is kept under.
+        added_xy = maps.new_empty(maps.shape[0], 2, height, width, dtype=torch.float16) if keep_lobe_peak else None
         noise_rows = None
         if denoise:
             # The noise's variance in contrast units at the network's size, upsampled as the smooth
@@ -516,13 +529,19 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             if slope_rows is not None:
                 added[:, 0:2] += slope_rows(start, stop)
             maps[..., start:stop, :] += added
+            if added_xy is not None:
+                added_xy[..., start:stop, :] = added[:, 0:2]
             if banded:
                 below[..., start // factor:-(-stop // factor), :] = downsample(
                     added, (-(-stop // factor) - start // factor, low_size[1]))
             else:  # one band of every row, at a size that is no multiple of the network's
                 below[...] = downsample(added, low_size)
+        # The detail's own tilts: what it adds above the network's resolution, not the made-up relief
+        # taken out below it.
+        below_xy_rows = _rows_at(below[:, 0:2].clone(), height, width) if keep_lobe_peak else None
         below[:, constants.NORMAL] += made_up
         below_rows = _rows_at(below, height, width)
+        lobe_factors = maps.new_ones(maps.shape[0], 1, *low_size) if keep_lobe_peak else None
         for start in range(0, height, rows):
             stop = min(height, start + rows)
             band = maps[..., start:stop, :]
@@ -530,7 +549,81 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             band[:, constants.NORMAL] = unit_vectors(torch.cat([band[:, 0:2], band[:, 2:3].clamp(min=1e-3)], dim=1),
                                                      dim=1)
             band[:, constants.REFLECTANCE] = band[:, constants.REFLECTANCE].clamp(0.0, 1.0)
+            if lobe_factors is not None:
+                tilt = (added_xy[..., start:stop, :].float() - below_xy_rows(start, stop)) * slope_scale
+                tilt2 = tilt.square().sum(dim=1, keepdim=True) / band[:, 2:3].clamp(min=0.1) ** 2
+                low_rows = slice(start // factor, -(-stop // factor)) if banded else slice(None)
+                band_low = (low_rows.stop - low_rows.start, low_size[1]) if banded else low_size
+                lobe_factors[..., low_rows, :] = lobe_peak_factors(band[:, constants.ROUGHNESS], tilt2, band_low)
+        if lobe_factors is not None:
+            # roughness = alpha^(1/2): the width's factor f scales it by f^(1/2)
+            factor_rows = _rows_at(lobe_factors.sqrt(), height, width)
+            for start in range(0, height, rows):
+                stop = min(height, start + rows)
+                maps[:, constants.ROUGHNESS, start:stop] *= factor_rows(start, stop)
     return maps
+
+
+#: Least factor ``lobe_peak_factors`` narrows a GGX width by.
+NARROWEST_LOBE = 0.3
+
+#: Factors of the GGX width ``lobe_peak_factors`` tries, evenly from 1 down to ``NARROWEST_LOBE``.
+LOBE_FACTORS = 24
+
+
+def lobe_peak(alpha2: torch.Tensor, tilt2: torch.Tensor) -> torch.Tensor:
+    """pi times the GGX distribution of width alpha (``alpha2`` = alpha^2) at the half vector along a
+    normal, for a microfacet normal tilted from it by an angle of squared tangent ``tilt2``:
+    ``alpha^2 (1 + t^2)^2 / (alpha^2 + t^2)^2`` (``1 / alpha^2`` untilted)."""
+    return alpha2 * (1.0 + tilt2) ** 2 / (alpha2 + tilt2) ** 2
+
+
+def lobe_peak_factors(roughness: torch.Tensor, tilt2: torch.Tensor, low_size: tuple[int, int],
+                      floor: float = constants.PHYSICAL_MIN_ROUGHNESS) -> torch.Tensor:
+    """The factor of each network pixel's GGX width (alpha = roughness^2) that keeps its specular
+    peak, averaged over the pixel, as it was before the normals got tilts of squared tangent
+    ``tilt2``.
+
+    Fine normals spread a lobe: a pixel tilted by t is seen at the peak's half vector as far as
+    t off its own normal, so the mean over a network pixel of the GGX peak ``lobe_peak`` falls,
+    most where the lobe is narrow. The refinement fitted the lobe, highlight's peak included, to
+    the photo without those tilts. Of ``LOBE_FACTORS`` factors f from 1 down, the first whose
+    narrowed lobe, f alpha, has a mean peak at least the untilted one's is found, and the factor is
+    read linearly between it and the one before; where none has, the factor whose mean peak comes
+    nearest (tilts far wider than the lobe: narrowing it dims the tilted pixels more). Unlike a
+    slope variance taken from alpha^2 (Toksvig's filtering of a normal map, undone) this holds for
+    heavy-tailed tilts too: a few steep ones leave the peak, they do not widen it.
+
+    Args:
+        roughness: (B, 1, H, W); tilt2: (B, 1, H, W) the squared tangent of each pixel's added tilt;
+        low_size: the network's (h, w), whose pixels the peak is averaged over.
+
+    Returns:
+        (B, 1, h, w) factors in [``NARROWEST_LOBE``, 1].
+    """
+    alpha2 = roughness.float().clamp(min=floor) ** 4
+    target = downsample(1.0 / alpha2, low_size)
+    factors = torch.ones_like(target)
+    found = torch.zeros_like(target, dtype=torch.bool)
+    # Where no factor reaches the target (tilts far wider than the lobe: narrowing it only dims the
+    # tilted pixels more), the one whose mean peak comes nearest.
+    nearest, nearest_peak = torch.ones_like(target), torch.full_like(target, -1.0)
+    previous_factor, previous_peak = None, None
+    for factor in torch.linspace(1.0, NARROWEST_LOBE, LOBE_FACTORS).tolist():
+        peak = downsample(lobe_peak(factor**2 * alpha2, tilt2), low_size)
+        higher = peak > nearest_peak
+        nearest[higher], nearest_peak[higher] = factor, peak[higher]
+        kept = (peak >= target) & ~found
+        if previous_peak is None:
+            factors[kept] = factor
+        else:  # linear between the last factor short of the target and this one
+            share = ((target - previous_peak) / (peak - previous_peak).clamp(min=1e-30)).clamp(0.0, 1.0)
+            factors[kept] = (previous_factor + share * (factor - previous_factor))[kept]
+        found |= kept
+        if bool(found.all()):
+            break
+        previous_factor, previous_peak = factor, peak
+    return torch.where(found, factors, nearest)
 
 
 def _rows_at(value: torch.Tensor, height: int, width: int):

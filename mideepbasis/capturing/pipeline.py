@@ -102,6 +102,16 @@ class CaptureConfig:
     fine as the pixels reads as noise too, and a noise-free photo's finest texture goes with it
     (benchmarks/README.md, detail: the photo's noise)."""
 
+    keep_lobe_peak: bool = True
+    """From 4 times the network's resolution on, where the detail step gives the normals finer
+    relief, narrow the refined roughness so that each network pixel's specular peak, averaged over
+    it, stays as the refinement fitted it without that relief (``detail.lobe_peak_factors``): fine
+    normals spread the lobe, and the highlights would dim under other lights. The network's own
+    roughness, unrefined, is left as it is: it was trained to be the surface's, not to make up for
+    relief the normals lack. At capture's default 256 px (one octave of detail) it is not applied:
+    there phone-like procedural scenes re-rendered a little worse with it (benchmarks/README.md,
+    detail: the lobe's peak)."""
+
     grey_specular: bool = False
     """Keep the specular's colour only in proportion to each pixel's metallic share (``Material.to_pbr``'s
     split, as the exports make it) and make it grey of the same luminance otherwise: a dielectric's
@@ -269,6 +279,10 @@ class Prediction:
     denoise_detail: bool = False
     """Whether the photo's fine contrast is denoised before it is added (``CaptureConfig.denoise_detail``)."""
 
+    keep_lobe_peak: bool = False
+    """Whether the roughness is narrowed under the normals' detail (``CaptureConfig.keep_lobe_peak``;
+    set by ``Capturer.refine``: the refined lobe is)."""
+
     relief_test_read: bool = False
     """Whether the relief test read the photo (``detail.relief_test_reads``; ``normal_detail`` is
     1 where it did not)."""
@@ -282,7 +296,8 @@ class Prediction:
 
             maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps,
                               normal_gain=self.normal_detail, albedo_share=1.0 - self.normal_detail,
-                              fine_slope=self.fine_slope, denoise=self.denoise_detail)
+                              fine_slope=self.fine_slope, denoise=self.denoise_detail,
+                              keep_lobe_peak=self.keep_lobe_peak, slope_scale=self.normal_strength)
         finishing = self.grey_specular or self.normal_strength != 1.0 or self.specular_floor > 0.0
         if finishing and maps is self.output.maps:
             maps = maps.clone()  # the output's own maps stay as the network gave them
@@ -490,7 +505,11 @@ class Capturer:
         refined, losses = refine_global_bases(prediction.output, photo.coarse_pixels, light, photo.fov, self.convention,
                                               self.model.config.plane_extent, self.config.refine, progress,
                                               size=prediction.size, normal_strength=prediction.normal_strength)
-        return prediction.compose(refined), losses
+        # The refined lobe was fitted without the normals' detail: it is narrowed under it, where the
+        # detail holds two octaves above the network's resolution or more.
+        low_size = tuple(prediction.output.maps.shape[-2:])
+        keep = self.config.keep_lobe_peak and relief_test_reads(prediction.size, low_size)
+        return replace(prediction.compose(refined), keep_lobe_peak=keep), losses
 
     def capture(self, image: str | Path | torch.Tensor, progress: bool = False) -> CaptureResult:
         """Capture a material from one flash photo: a file, or a (3, H, W) linear tensor."""
@@ -537,6 +556,8 @@ class Capturer:
                                                                 "fine_relief_strength": config.fine_relief_strength,
                                                                 "detail_denoised": (prediction.detail_from is not None
                                                                                     and prediction.denoise_detail),
+                                                                "lobe_peak_kept": (prediction.detail_from is not None
+                                                                                   and prediction.keep_lobe_peak),
                                                                 "normal_detail": prediction.normal_detail}})
         return CaptureResult(material=material, photo=photo.pixels, offset=offset, fov=photo.fov,
                              fov_source=photo.fov_source, searched=config.light is None, search_history=history,

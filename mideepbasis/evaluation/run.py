@@ -110,6 +110,10 @@ class EvaluationConfig:
     """Denoise the photo's fine contrast before the detail step adds it, as ``capture`` does
     (``CaptureConfig.denoise_detail``; None: capture's default)."""
 
+    keep_lobe_peak: bool | None = None
+    """Narrow the roughness under the normals' detail so that the specular peak stays as fitted,
+    as ``capture`` does (``CaptureConfig.keep_lobe_peak``; None: capture's default)."""
+
     grey_specular: bool | None = None
     """Make the specular grey but for each pixel's metallic share, as ``capture --grey-specular``
     does (``CaptureConfig.grey_specular``; None: capture's default)."""
@@ -192,7 +196,7 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
 
 #: The fields an evaluation shares with ``CaptureConfig``, None in the evaluation for capture's default.
 SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "fine_relief_strength", "denoise_detail",
-                         "grey_specular", "specular_floor", "normal_strength", "lobe_variation")
+                         "keep_lobe_peak", "grey_specular", "specular_floor", "normal_strength", "lobe_variation")
 
 
 def capture_options(config: EvaluationConfig | None) -> dict:

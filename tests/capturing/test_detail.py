@@ -17,7 +17,8 @@ from ..helpers import matte_egg_crate
 #: the upsampled answer's error the detail removes.
 TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "flat_normal": 1e-3,
               "made_up_band_left": 0.85, "fine_relief_correlation": 0.4, "fine_slope_kept": 2e-3,
-              "noise_variance": 0.2, "noise_left": 0.1, "noise_energy_left": 0.15, "noise_free_change": 2e-3}
+              "noise_variance": 0.2, "noise_left": 0.1, "noise_energy_left": 0.15, "noise_free_change": 2e-3,
+              "lobe_peak_mean": 5e-3, "lobe_peak_pixel": 0.05}
 
 SIZE, LOW = 256, 32
 
@@ -557,3 +558,142 @@ def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
     left_dark[:, :12] = 0.0
     sided = read(left_dark)
     assert float(sided[..., :40].abs().max()) == 0.0 and torch.equal(sided[..., 56:], whole[..., 56:])
+
+
+# --- the lobe's peak under the normals' detail -------------------------------------------------------
+
+def _ggx_peak(alpha: torch.Tensor, tilt2: torch.Tensor) -> torch.Tensor:
+    """pi D(m) of GGX, alpha^2 / ((n.m)^2 (alpha^2 - 1) + 1)^2, for m along the untilted normal and
+    the microfacet normal n tilted from it by an angle of squared tangent ``tilt2`` (float64)."""
+    cos2 = 1.0 / (1.0 + tilt2.double())
+    alpha2 = alpha.double() ** 2
+    return alpha2 / (cos2 * (alpha2 - 1.0) + 1.0) ** 2
+
+
+def test_lobe_peak_is_the_ggx_distribution_at_the_untilted_normals_half_vector():
+    alpha = torch.tensor([0.01, 0.1, 0.5, 1.0]).view(-1, 1)
+    tilt2 = torch.tensor([0.0, 1e-4, 0.01, 0.3, 4.0]).view(1, -1)
+    expected = _ggx_peak(alpha, tilt2)
+    assert torch.allclose(detail.lobe_peak(alpha**2, tilt2).double(), expected, rtol=1e-5)
+
+
+def _block_mean(image: torch.Tensor, block: int) -> torch.Tensor:
+    return F.avg_pool2d(image, block)
+
+
+def test_lobe_peak_factors_keep_each_pixels_mean_peak_with_the_widest_lobe():
+    block, blocks = 8, 3
+    size = block * blocks
+    generator = torch.Generator().manual_seed(6)
+    roughness = 0.3 + 0.05 * torch.rand(1, 1, size, size, generator=generator)
+    tilt2 = torch.zeros(1, 1, size, size)
+    # Row 0: no tilt; row 1: Gaussian tilts of growing spread; row 2: one steep pixel in 64.
+    for column, spread in enumerate((0.01, 0.02, 0.04)):
+        slopes = spread * torch.randn(2, block, block, generator=generator)
+        tilt2[0, 0, block:2 * block, column * block:(column + 1) * block] = slopes.square().sum(dim=0)
+    tilt2[0, 0, 2 * block::block, ::block] = 1.0
+    factors = detail.lobe_peak_factors(roughness, tilt2, (blocks, blocks))
+    assert torch.equal(factors[0, 0, 0], torch.ones(blocks))
+    alpha = roughness.double() ** 2
+    target = _block_mean(1.0 / alpha**2, block)
+    spread = F.interpolate(factors.double(), scale_factor=block, mode="nearest")
+    kept = _block_mean(_ggx_peak(spread * alpha, tilt2), block)
+    wider = _block_mean(_ggx_peak(spread * 1.01 * alpha, tilt2), block)
+    tilted = torch.ones(blocks, blocks, dtype=torch.bool)
+    tilted[0] = False
+    # The narrowed lobe keeps the mean peak (to the factors' linear reading) and a 1 % wider one does not.
+    assert torch.all(kept[0, 0][tilted] >= target[0, 0][tilted] * (1 - 2e-3))
+    assert torch.all(wider[0, 0][tilted] < target[0, 0][tilted])
+    # The more the tilts spread, the narrower the lobe.
+    assert factors[0, 0, 1, 0] > factors[0, 0, 1, 1] > factors[0, 0, 1, 2]
+    assert float(factors[0, 0, 1, 2]) > detail.NARROWEST_LOBE
+    # One steep pixel in 64 leaves the peak (its lobe points away) rather than widening it: about
+    # 1/64 of the peak to make up, alpha^2 -> 63/64 alpha^2, where a slope variance of 1/64 taken from
+    # alpha^2 (at most 0.35^4 here) would leave nothing.
+    assert factors[0, 0, 2] == pytest.approx(torch.full((blocks,), (63 / 64) ** 0.5), abs=5e-3)
+
+
+def test_lobe_peak_factors_leave_a_lobe_whose_every_pixel_is_tilted_far_beyond_it():
+    # Every pixel tilted by 63 deg under a rough lobe: narrowing only dims the tilted peaks more, so the
+    # width whose mean peak comes nearest the untilted one is the lobe's own.
+    roughness = torch.full((1, 1, 8, 8), 0.9)
+    tilt2 = torch.full((1, 1, 8, 8), 4.0)
+    assert torch.equal(detail.lobe_peak_factors(roughness, tilt2, (1, 1)), torch.ones(1, 1, 1, 1))
+
+
+def test_the_roughness_keeps_each_network_pixels_mean_lobe_peak_under_the_normals_detail():
+    albedo, photo = textured_scene(4)
+    low, maps = upsampled_answer(albedo)  # flat normals, roughness 0.4
+    generator = torch.Generator().manual_seed(7)
+    slope = 0.05 * torch.randn(1, 2, SIZE, SIZE, generator=generator)
+    slope = slope - upsample_bilinear(downsample(slope, LOW), SIZE, SIZE)
+    strength = 0.75  # the normals' slopes as capture renders them
+
+    def detailed(keep: bool) -> torch.Tensor:
+        return detail.add_detail(maps.clone(), photo, low, fine_slope=slope, keep_lobe_peak=keep, slope_scale=strength)
+
+    plain, kept = detailed(False), detailed(True)
+    rough = constants.ROUGHNESS
+    assert torch.equal(kept[:, :rough.start], plain[:, :rough.start])
+    assert torch.equal(kept[:, rough.stop:], plain[:, rough.stop:])
+    assert torch.all(kept[:, rough] <= plain[:, rough] + 1e-6) and float(kept[:, rough].mean()) < 0.39
+    # Each network pixel's mean GGX peak under the rendered tilts (the normals were flat before).
+    tilt2 = (strength * kept[:, 0:2] / kept[:, 2:3]).square().sum(dim=1, keepdim=True)
+    block = SIZE // LOW
+    target = _block_mean(1.0 / (plain[:, rough].double() ** 2) ** 2, block)
+    ratio = lambda m: _block_mean(_ggx_peak(m[:, rough] ** 2, tilt2), block) / target  # noqa: E731
+    assert float(ratio(plain).mean()) < 0.9  # the detail dims the peak
+    # Kept on average; pixel by pixel to the factors' bilinear upsampling, which mixes neighbours'.
+    assert float(ratio(kept).mean()) == pytest.approx(1.0, abs=TOLERANCES["lobe_peak_mean"])
+    assert torch.allclose(ratio(kept), torch.ones_like(target), atol=TOLERANCES["lobe_peak_pixel"])
+
+
+def test_bands_of_rows_give_the_whole_image_keeping_the_lobe_peak(monkeypatch):
+    albedo, photo = textured_scene(2)
+    low, maps = upsampled_answer(albedo)
+    slope = 0.05 * torch.randn(1, 2, SIZE, SIZE, generator=torch.Generator().manual_seed(8))
+    whole = detail.add_detail(maps.clone(), photo, low, fine_slope=slope, keep_lobe_peak=True)
+    monkeypatch.setattr(detail, "BAND_PIXELS", SIZE * 24)  # bands of 24 rows
+    banded = detail.add_detail(maps.clone(), photo, low, fine_slope=slope, keep_lobe_peak=True)
+    assert torch.allclose(banded, whole, atol=1e-5)
+    assert not torch.allclose(whole[:, constants.ROUGHNESS], maps[:, constants.ROUGHNESS], atol=1e-3)
+
+
+def test_the_lobe_peak_is_kept_at_a_size_that_is_no_multiple_of_the_networks():
+    albedo, photo = textured_scene(1)
+    low, _ = upsampled_answer(albedo)
+    height, width = 200, 256
+    photo, maps = downsample(photo, (height, width)), upsample_bilinear(low, height, width)
+    slope = 0.05 * torch.randn(1, 2, height, width, generator=torch.Generator().manual_seed(9))
+    kept = detail.add_detail(maps.clone(), photo, low, fine_slope=slope, keep_lobe_peak=True)
+    plain = detail.add_detail(maps.clone(), photo, low, fine_slope=slope)
+    assert kept.shape == (1, 10, height, width)
+    assert float(kept[:, constants.ROUGHNESS].mean()) < float(plain[:, constants.ROUGHNESS].mean()) - 0.005
+
+
+def test_capture_keeps_the_refined_lobes_peak_unless_told_not_to(tiny_checkpoint):
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
+
+    size = 256
+    photo, _ = _flash_photo(matte_egg_crate(size, cycles=24, slope=0.15))
+    results = {}
+    for keep in (True, False):
+        config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW, symmetries=1,
+                               refine=RefineConfig(steps=2), keep_lobe_peak=keep)
+        capturer = Capturer(tiny_checkpoint, config)
+        material = capturer.capture(photo).material
+        results[keep] = material.provenance["capture"]["lobe_peak_kept"], material.to_tensor()
+        # The network's own roughness, unrefined, is left as it is: only the refined lobe is narrowed.
+        loaded = capturer.photo_from_tensor(photo)
+        assert not capturer.predict(loaded, config.light).keep_lobe_peak
+    assert results[True][0] is True and results[False][0] is False
+    # At twice the network's size (one octave of detail) the lobe is left as refined.
+    config = CaptureConfig(light=(0.25, -0.15), resolution=2 * LOW, network_resolution=LOW, symmetries=1,
+                           refine=RefineConfig(steps=2))
+    small = downsample(photo[None], 2 * LOW)[0]  # a tensor photo is taken at its own size
+    assert Capturer(tiny_checkpoint, config).capture(small).material.provenance["capture"]["lobe_peak_kept"] is False
+    kept, unkept = results[True][1], results[False][1]
+    rough = constants.ROUGHNESS
+    others = [channel for channel in range(kept.shape[0]) if channel != rough.start]
+    assert torch.allclose(kept[others], unkept[others], atol=1e-6)  # two refinements: to float rounding
+    assert torch.all(kept[rough] <= unkept[rough] + 1e-6) and float((unkept[rough] - kept[rough]).mean()) > 1e-4
