@@ -613,10 +613,8 @@ def lobe_peak_factors(roughness: torch.Tensor, tilt2: torch.Tensor, low_size: tu
         peak = downsample(lobe_peak(factor**2 * alpha2, tilt2), low_size)
         higher = peak > nearest_peak
         nearest[higher], nearest_peak[higher] = factor, peak[higher]
-        kept = (peak >= target) & ~found
-        if previous_peak is None:
-            factors[kept] = factor
-        else:  # linear between the last factor short of the target and this one
+        kept = (peak >= target) & ~found  # at the first factor, 1: ``factors`` holds it already
+        if previous_peak is not None:  # linear between the last factor short of the target and this one
             share = ((target - previous_peak) / (peak - previous_peak).clamp(min=1e-30)).clamp(0.0, 1.0)
             factors[kept] = (previous_factor + share * (factor - previous_factor))[kept]
         found |= kept
