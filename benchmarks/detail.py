@@ -589,6 +589,8 @@ def main() -> None:
                         help="only measure how the fine detail of the calibrated scenes in DIR lines up across their "
                              "photos (registration)")
     args = parser.parse_args()
+    if args.fine_relief_strength != 1.0 and not args.fine_relief:
+        parser.error("--fine-relief-strength applies only with --fine-relief")
     if args.registration is not None:
         write_section(args.output, "detail_registration", "detail --registration",
                       registration_report(args.registration, args.band))

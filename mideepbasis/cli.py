@@ -173,7 +173,10 @@ def _run_capture(args) -> int:
             raise InputError("--truth compares one capture with its true material: give one photo")
         truth = Material.load(args.truth)
     inputs = photos + ([args.truth] if args.truth is not None else [])
-    config = config_from_arguments(CaptureConfig, args)
+    try:
+        config = config_from_arguments(CaptureConfig, args)
+    except ValueError as error:  # a check across options (one option's own is argparse's)
+        raise InputError(f"capture: {error}") from None
     if not single or args.cluster:
         return _capture_batch(photos, args, config)
     # Checked and locked before the work: a refusal comes first, and no other command writes it meanwhile.
@@ -364,7 +367,10 @@ def _run_evaluate(args) -> None:
 
     if not args.data.is_dir():
         raise InputError(f"{args.data}: no such dataset folder")
-    config = config_from_arguments(EvaluationConfig, args, EvaluationConfig(data=str(args.data), out=str(args.output)))
+    try:
+        config = config_from_arguments(EvaluationConfig, args, EvaluationConfig(data=str(args.data), out=str(args.output)))
+    except ValueError as error:  # a check across options (one option's own is argparse's)
+        raise InputError(f"evaluate: {error}") from None
     summary = run_evaluation(config)
     print((args.output / "table.md").read_text())
     for note in summary["notes"]:

@@ -92,7 +92,8 @@ class CaptureConfig:
     0.13 of the truth's at 1 and 0.64 at 3, where the normal RMSE is still below the upsampled
     answer's (0.0859 against 0.0899); a photo whose fine contrast is not relief, a flat grained
     wood that the relief test lets through or card-blue's foil, gets more made-up relief
-    (benchmarks/README.md, detail: the fine relief)."""
+    (benchmarks/README.md, detail: the fine relief). A value other than 1 without ``fine_relief``
+    is refused: it would change nothing."""
 
     denoise_detail: bool = False
     """Take the photo's noise out of the detail step's fine contrast first (``detail.denoise_contrast``,
@@ -150,6 +151,10 @@ class CaptureConfig:
                 check(getattr(self, name))
             except ValueError as error:
                 raise ValueError(f"{name} {error}") from None
+        if self.fine_relief_strength != 1.0 and not self.fine_relief:
+            # Else the strength would be dropped without a word.
+            raise ValueError(f"fine_relief_strength {self.fine_relief_strength:g} applies only with fine_relief "
+                             "(--fine-relief)")
 
 
 @dataclass(frozen=True)

@@ -174,6 +174,10 @@ class EvaluationConfig:
     environment_resolution: int | None = field(default=None, metadata={"parse": positive_int})
     """Size of the environment renders [pixels] (None: the protocol's)."""
 
+    def __post_init__(self):
+        # Capture's checks across its options, before any work (``CaptureConfig.__post_init__``).
+        evaluation_capture_config(self)
+
     @property
     def data_format(self) -> str:
         """``format``, or the one the data's folder shows where it is None."""

@@ -3,6 +3,8 @@ follows the photo, not to one that does not, the low band kept, bands of rows as
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -537,6 +539,28 @@ def test_a_negative_fine_relief_strength_is_refused(capsys):
     with pytest.raises(SystemExit):
         main(["capture", "photo.jpg", "-o", "out", "--fine-relief-strength", "-1"])
     assert "--fine-relief-strength: must be 0 or more, got -1" in capsys.readouterr().err
+
+
+def test_a_fine_relief_strength_without_the_fine_relief_is_refused_in_one_line(tmp_path, capsys):
+    from mideepbasis.capturing import CaptureConfig
+    from mideepbasis.cli import main
+    from mideepbasis.evaluation import EvaluationConfig
+
+    message = "fine_relief_strength 3 applies only with fine_relief (--fine-relief)"
+    with pytest.raises(ValueError, match=re.escape(message)):
+        CaptureConfig(fine_relief_strength=3.0)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        EvaluationConfig(data="d", fine_relief_strength=3.0)
+    assert CaptureConfig(fine_relief=True, fine_relief_strength=3.0).fine_relief_strength == 3.0
+    assert EvaluationConfig(data="d", fine_relief=True, fine_relief_strength=3.0).fine_relief_strength == 3.0
+    photo = tmp_path / "photo.png"
+    photo.write_bytes(b"")  # never read: the options are refused first
+    assert main(["capture", str(photo), "-o", str(tmp_path / "out"), "--fine-relief-strength", "3"]) != 0
+    assert main(["evaluate", "--data", str(tmp_path), "-o", str(tmp_path / "evaluated"),
+                 "--fine-relief-strength", "3"]) != 0
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert errors == [f"mideepbasis: error: capture: {message}", f"mideepbasis: error: evaluate: {message}"]
+    assert not (tmp_path / "out").exists() and not (tmp_path / "evaluated").exists()
 
 
 def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
