@@ -368,7 +368,8 @@ def _run_evaluate(args) -> None:
     if not args.data.is_dir():
         raise InputError(f"{args.data}: no such dataset folder")
     try:
-        config = config_from_arguments(EvaluationConfig, args, EvaluationConfig(data=str(args.data), out=str(args.output)))
+        base = EvaluationConfig(data=str(args.data), out=str(args.output))
+        config = config_from_arguments(EvaluationConfig, args, base)
     except ValueError as error:  # a check across options (one option's own is argparse's)
         raise InputError(f"evaluate: {error}") from None
     summary = run_evaluation(config)
