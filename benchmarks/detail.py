@@ -589,8 +589,13 @@ def main() -> None:
                         help="only measure how the fine detail of the calibrated scenes in DIR lines up across their "
                              "photos (registration)")
     args = parser.parse_args()
-    if args.fine_relief_strength != 1.0 and not args.fine_relief:
-        parser.error("--fine-relief-strength applies only with --fine-relief")
+    fov = constants.DEFAULT_FOV_DEG
+    try:  # capture's checks across its options, before any work
+        base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test, fine_relief=args.fine_relief,
+                             fine_relief_strength=args.fine_relief_strength, denoise_detail=args.denoise,
+                             keep_lobe_peak=not args.no_keep_lobe_peak)
+    except ValueError as error:
+        parser.error(str(error))
     if args.registration is not None:
         write_section(args.output, "detail_registration", "detail --registration",
                       registration_report(args.registration, args.band))
@@ -604,10 +609,7 @@ def main() -> None:
         return
 
     model = load_model(args.model)
-    fov, convention, extent = constants.DEFAULT_FOV_DEG, model.config.convention, model.config.plane_extent
-    base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test, fine_relief=args.fine_relief,
-                         fine_relief_strength=args.fine_relief_strength, denoise_detail=args.denoise,
-                         keep_lobe_peak=not args.no_keep_lobe_peak)
+    convention, extent = model.config.convention, model.config.plane_extent
     if args.refine_steps is not None:
         base = replace(base, refine=replace(base.refine, steps=args.refine_steps))
     chosen = materials(args.materials, args.flat, args.first_seed)

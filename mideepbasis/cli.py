@@ -173,10 +173,7 @@ def _run_capture(args) -> int:
             raise InputError("--truth compares one capture with its true material: give one photo")
         truth = Material.load(args.truth)
     inputs = photos + ([args.truth] if args.truth is not None else [])
-    try:
-        config = config_from_arguments(CaptureConfig, args)
-    except ValueError as error:  # a check across options (one option's own is argparse's)
-        raise InputError(f"capture: {error}") from None
+    config = config_from_arguments(CaptureConfig, args)
     if not single or args.cluster:
         return _capture_batch(photos, args, config)
     # Checked and locked before the work: a refusal comes first, and no other command writes it meanwhile.
@@ -367,11 +364,8 @@ def _run_evaluate(args) -> None:
 
     if not args.data.is_dir():
         raise InputError(f"{args.data}: no such dataset folder")
-    try:
-        base = EvaluationConfig(data=str(args.data), out=str(args.output))
-        config = config_from_arguments(EvaluationConfig, args, base)
-    except ValueError as error:  # a check across options (one option's own is argparse's)
-        raise InputError(f"evaluate: {error}") from None
+    base = EvaluationConfig(data=str(args.data), out=str(args.output))
+    config = config_from_arguments(EvaluationConfig, args, base)
     summary = run_evaluation(config)
     print((args.output / "table.md").read_text())
     for note in summary["notes"]:
@@ -445,10 +439,7 @@ def _run_train(args) -> None:
         if checkpoint.exists():
             raise InputError(f"{args.out} already holds a run: pass --resume to continue it or choose another --out")
         base = TrainConfig(preset=getattr(args, "preset", TrainConfig.preset))
-    try:
-        config = config_from_arguments(TrainConfig, args, base)
-    except (ValueError, TypeError) as error:
-        raise InputError(f"train: {error}") from None
+    config = config_from_arguments(TrainConfig, args, base)
     path = train(dataclasses.replace(config, out=str(args.out)), resume=args.resume)
     if path.exists():
         print(f"wrote {path}")

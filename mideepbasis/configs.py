@@ -29,6 +29,8 @@ import types
 import typing
 from functools import lru_cache
 
+from .errors import InputError
+
 #: The separator of a nested field's path in argparse's namespace.
 _SEPARATOR = "__"
 
@@ -273,15 +275,28 @@ def given_fields(args: argparse.Namespace, cls: type) -> dict[str, object]:
     return given
 
 
-def config_from_arguments(cls: type, args: argparse.Namespace, base=None, _path: tuple[str, ...] = ()):
-    """``base`` (default: ``cls()``) with the fields given on the command line replaced."""
+def config_from_arguments(cls: type, args: argparse.Namespace, base=None):
+    """``base`` (default: ``cls()``) with the fields given on the command line replaced.
+
+    A combination the config refuses (its own check across fields, ``__post_init__``; each option's
+    own value argparse checks) raises ``InputError``, its message led by the command's name
+    (``args.command``) where there is one: the command line prints it as one line."""
+    try:
+        return _with_arguments(cls, args, base, ())
+    except (ValueError, TypeError) as error:
+        command = getattr(args, "command", None)
+        raise InputError(f"{command}: {error}" if command else str(error)) from None
+
+
+def _with_arguments(cls: type, args: argparse.Namespace, base, _path: tuple[str, ...]):
+    """``config_from_arguments`` of the fields under ``_path``, errors as the configs raise them."""
     config = base if base is not None else cls()
     hints = typing.get_type_hints(cls)
     changes = {}
     for item in dataclasses.fields(cls):
         path = _path + (item.name,)
         if _nested(hints[item.name]):
-            nested = config_from_arguments(_nested(hints[item.name]), args, getattr(config, item.name), path)
+            nested = _with_arguments(_nested(hints[item.name]), args, getattr(config, item.name), path)
             if nested is not getattr(config, item.name):
                 changes[item.name] = nested
         elif hasattr(args, _destination(path)):
