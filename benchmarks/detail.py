@@ -49,6 +49,8 @@ thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_se
 ``--fine-relief`` captures with the normals' detail read by the network's normal unit
 (``CaptureConfig.fine_relief``): its entries end in ``_fine_relief``, and with
 ``--fine-relief-strength S`` other than 1 (``CaptureConfig.fine_relief_strength``) in ``_fine_relief_S``.
+``--relief-reader FILE`` with it reads that relief with a relief reader (``CaptureConfig.relief_reader``):
+its entries end in ``_reader`` after those.
 ``--denoise`` captures with the photo's fine contrast denoised (``CaptureConfig.denoise_detail``):
 its entries end in ``_denoised``.
 ``--no-keep-lobe-peak`` captures with the roughness as refined under the normals' detail
@@ -570,6 +572,9 @@ def main() -> None:
     parser.add_argument("--fine-relief-strength", type=float, default=1.0, metavar="S",
                         help="with --fine-relief, the factor of the relief it reads "
                              "(CaptureConfig.fine_relief_strength); other than 1, entries end in _fine_relief_S")
+    parser.add_argument("--relief-reader", default=None, metavar="FILE",
+                        help="with --fine-relief, a relief reader's weights that read the normals' detail "
+                             "(CaptureConfig.relief_reader); entries end in _reader")
     parser.add_argument("--denoise", action="store_true",
                         help="capture with the photo's fine contrast denoised (CaptureConfig.denoise_detail); "
                              "entries end in _denoised")
@@ -592,7 +597,8 @@ def main() -> None:
     fov = constants.DEFAULT_FOV_DEG
     try:  # capture's checks across its options, before any work
         base = CaptureConfig(fov=fov, relief_test=not args.no_relief_test, fine_relief=args.fine_relief,
-                             fine_relief_strength=args.fine_relief_strength, denoise_detail=args.denoise,
+                             fine_relief_strength=args.fine_relief_strength, relief_reader=args.relief_reader,
+                             denoise_detail=args.denoise,
                              keep_lobe_peak=not args.no_keep_lobe_peak)
     except ValueError as error:
         parser.error(str(error))
@@ -626,6 +632,8 @@ def main() -> None:
     if args.fine_relief and args.fine_relief_strength != 1.0:
         key_suffix += f"_{args.fine_relief_strength:g}"
         command_suffix += f" --fine-relief-strength {args.fine_relief_strength:g}"
+    key_suffix += "_reader" if args.relief_reader else ""
+    command_suffix += f" --relief-reader {args.relief_reader}" if args.relief_reader else ""
     key_suffix += "_denoised" if args.denoise else ""
     command_suffix += " --denoise" if args.denoise else ""
     key_suffix += "_lobe_unkept" if args.no_keep_lobe_peak else ""
@@ -719,7 +727,7 @@ def main() -> None:
               "lights": args.lights, "seed": args.seed, "fov_deg": fov,
               "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
               "first_seed": args.first_seed, "fine_relief": args.fine_relief,
-              "fine_relief_strength": args.fine_relief_strength,
+              "fine_relief_strength": args.fine_relief_strength, "relief_reader": args.relief_reader,
               "denoise_detail": args.denoise, "keep_lobe_peak": not args.no_keep_lobe_peak,
               "swap_reflectance": args.swap_reflectance, "groups": groups, "per_material": records}
     if args.photo_jitter > 0:

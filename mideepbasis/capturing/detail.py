@@ -273,7 +273,8 @@ FINE_RELIEF_MATTE_POWER = 1.0
 
 def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, fov: float,
                 low_size: tuple[int, int], max_size: int = FINE_RELIEF_SIZE,
-                matte: torch.Tensor | None = None, strength: float = 1.0) -> torch.Tensor:
+                matte: torch.Tensor | None = None, strength: float = 1.0, reader=None,
+                convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
     """The relief finer than the network's resolution as its normal unit reads it from the photo.
 
     The unit (``DeepBasisNet.normal_unit``, its octaves summed as in the network's pass) runs on
@@ -287,12 +288,21 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
         model: a network with a normal unit; photo: (B, 3, H, W) linear; light: (B, 3) or (3,)
             the flash [patch half-widths]; fov: the photo's [deg]; low_size: the network's (h, w);
         matte: (h', w') the diffuse's share of the photo (``matte_share``), at any size; None: 1;
-        strength: the slope's factor, 1 the unit's own reading.
+        strength: the slope's factor, 1 the unit's own reading;
+        reader: a relief reader (``model.relief_reader``) that reads the slope in the unit's place
+            (``read_relief``, at up to ``max_size`` too), under ``convention`` and ``extent``.
 
     Returns:
         (B, 2, H', W') the x and y slope to add to the normals at the photo's size (bilinear up
         to it), H' and W' at most ``max_size``.
     """
+    if reader is not None:
+        from ..model.relief_reader import read_relief
+
+        slope = read_relief(reader, photo, light, fov, low_size, max_size, convention, extent)
+        if matte is not None:
+            slope = slope * upsample_bilinear(matte.float()[None, None] ** FINE_RELIEF_MATTE_POWER, *slope.shape[-2:])
+        return slope * strength
     multiple = model.config.normal_unit_stride
     height, width = photo.shape[-2:]
     scale = max(1.0, max(height, width) / max_size)

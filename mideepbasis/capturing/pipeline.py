@@ -95,6 +95,12 @@ class CaptureConfig:
     (benchmarks/README.md, detail: the fine relief). A value other than 1 without ``fine_relief``
     is refused: it would change nothing."""
 
+    relief_reader: str | None = field(default=None, metadata={"metavar": "FILE"})
+    """With ``fine_relief``, a relief reader's weights (``model.relief_reader``, trained by
+    ``scripts/train_relief_reader.py``): a network of its own, trained for the relief above the
+    network's band, reads the normals' detail in place of the normal unit (weighted and scaled as
+    the unit's reading is). None: the normal unit."""
+
     denoise_detail: bool = False
     """Take the photo's noise out of the detail step's fine contrast first (``detail.denoise_contrast``,
     the noise measured from the photo itself by its level, ``detail.photo_noise``): a noisy photo's
@@ -155,6 +161,8 @@ class CaptureConfig:
             # Else the strength would be dropped without a word.
             raise ValueError(f"fine_relief_strength {self.fine_relief_strength:g} applies only with fine_relief "
                              "(--fine-relief)")
+        if self.relief_reader is not None and not self.fine_relief:
+            raise ValueError(f"relief_reader {self.relief_reader} applies only with fine_relief (--fine-relief)")
 
 
 @dataclass(frozen=True)
@@ -394,6 +402,14 @@ def flash_position(offset: tuple[float, float] | torch.Tensor, fov: float) -> to
     return geometry.light_positions(offset, fov)
 
 
+@functools.cache
+def loaded_reader(path: str):
+    """The relief reader stored at ``path`` (``model.relief_reader.load_reader``), loaded once."""
+    from ..model.relief_reader import load_reader
+
+    return load_reader(path)[0]
+
+
 class Capturer:
     """A model and the settings of its captures; its stages are what ``capture`` runs.
 
@@ -478,8 +494,10 @@ class Capturer:
         normal_detail = (photo_relief_gain(photo.pixels, light, output.maps, photo.fov, self.convention, extent,
                                            matte=matte) if tested else 1.0)
         # The unit's slope is scaled by the relief test's gain: where that is 0 it would add nothing.
+        reader = loaded_reader(self.config.relief_reader) if self.config.relief_reader else None
         fine = (fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte,
-                            strength=self.config.fine_relief_strength)
+                            strength=self.config.fine_relief_strength, reader=reader, convention=self.convention,
+                            extent=extent)
                 if fine_wanted and normal_detail > 0.0 else None)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine, denoise_detail=self.config.denoise_detail,
@@ -559,6 +577,9 @@ class Capturer:
                                                                 "relief_test_read": prediction.relief_test_read,
                                                                 "fine_relief": prediction.fine_slope is not None,
                                                                 "fine_relief_strength": config.fine_relief_strength,
+                                                                "relief_reader": (Path(config.relief_reader).name
+                                                                                  if prediction.fine_slope is not None
+                                                                                  and config.relief_reader else None),
                                                                 "detail_denoised": (prediction.detail_from is not None
                                                                                     and prediction.denoise_detail),
                                                                 "lobe_peak_kept": (prediction.detail_from is not None

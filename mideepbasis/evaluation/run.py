@@ -106,6 +106,10 @@ class EvaluationConfig:
     """The factor of the relief ``fine_relief`` reads, as ``capture --fine-relief-strength``
     (``CaptureConfig.fine_relief_strength``; None: capture's default)."""
 
+    relief_reader: str | None = field(default=None, metadata={"metavar": "FILE"})
+    """With ``fine_relief``, a relief reader's weights that read the normals' detail in place of
+    the normal unit, as ``capture --relief-reader`` (``CaptureConfig.relief_reader``)."""
+
     denoise_detail: bool | None = None
     """Denoise the photo's fine contrast before the detail step adds it, as ``capture`` does
     (``CaptureConfig.denoise_detail``; None: capture's default)."""
@@ -199,8 +203,9 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
 
 
 #: The fields an evaluation shares with ``CaptureConfig``, None in the evaluation for capture's default.
-SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "fine_relief_strength", "denoise_detail",
-                         "keep_lobe_peak", "grey_specular", "specular_floor", "normal_strength", "lobe_variation")
+SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "fine_relief_strength", "relief_reader",
+                         "denoise_detail", "keep_lobe_peak", "grey_specular", "specular_floor", "normal_strength",
+                         "lobe_variation")
 
 
 def capture_options(config: EvaluationConfig | None) -> dict:

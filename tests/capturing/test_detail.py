@@ -563,6 +563,50 @@ def test_a_fine_relief_strength_without_the_fine_relief_is_refused_in_one_line(t
     assert not (tmp_path / "out").exists() and not (tmp_path / "evaluated").exists()
 
 
+def test_a_relief_reader_reads_the_fine_relief_in_the_units_place(tmp_path, capsys):
+    from dataclasses import replace
+
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
+    from mideepbasis.capturing.pipeline import flash_position
+    from mideepbasis.cli import main
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+    from mideepbasis.model.relief_reader import ReliefReader, ReliefReaderConfig, read_relief, save_reader
+
+    torch.manual_seed(0)
+    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
+    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    reader = ReliefReader(ReliefReaderConfig(width=4, encoder_blocks=(1, 1), middle_blocks=1))
+    with torch.no_grad():  # a reader that reads a strong relief from anything
+        reader.net.ending.bias.fill_(0.2)
+    weights = save_reader(tmp_path / "reader.safetensors", reader)
+    photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
+    captured = {}
+    for name, options in (("unit", {}), ("reader", {"relief_reader": str(weights)})):
+        capture_config = CaptureConfig(light=(0.25, -0.15), resolution=128, network_resolution=LOW, symmetries=1,
+                                       refine=RefineConfig(steps=0), fine_relief=True, **options)
+        capturer = Capturer(model, capture_config)
+        loaded = capturer.photo_from_tensor(photo)
+        captured[name] = capturer.predict(loaded, (0.25, -0.15))
+    fov, light = constants.DEFAULT_FOV_DEG, flash_position((0.25, -0.15), constants.DEFAULT_FOV_DEG)
+    low_maps = captured["reader"].output.maps[:1].detach()
+    matte = detail.matte_share(low_maps, light, fov, capturer.convention, capturer.model.config.plane_extent)
+    # The reader's slope, weighted by the diffuse's share as the unit's is.
+    expected = read_relief(reader, photo[None], light, fov, (LOW, LOW)) * upsample_bilinear(
+        matte[None, None] ** detail.FINE_RELIEF_MATTE_POWER, 128, 128)
+    read = captured["reader"].fine_slope
+    assert float(expected.abs().max()) > 0.01
+    assert torch.allclose(read, expected, atol=1e-6)
+    assert not torch.allclose(read, captured["unit"].fine_slope, atol=1e-3)
+    assert capturer.capture(photo).material.provenance["capture"]["relief_reader"] == "reader.safetensors"
+    message = "relief_reader r.safetensors applies only with fine_relief (--fine-relief)"
+    with pytest.raises(ValueError, match=re.escape(message)):
+        CaptureConfig(relief_reader="r.safetensors")
+    assert main(["capture", str(tmp_path / "photo.png"), "-o", str(tmp_path / "out"),
+                 "--relief-reader", "r.safetensors"]) != 0
+    assert capsys.readouterr().err.strip() == f"mideepbasis: error: capture: {message}"
+
+
 def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
     from mideepbasis.model.checkpoint import load_model
 
