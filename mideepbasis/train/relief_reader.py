@@ -67,6 +67,14 @@ class ReliefTrainingConfig:
     """Steps between validations; 0: none."""
     validation_count: int = 12
     """Validation materials (relief, from ``VALIDATION_SEED``)."""
+    render_weight: float = 0.0
+    """Weight of the re-rendering loss: the crop rendered with the true maps, its normals' band
+    above the network's replaced by the reader's, against the true crop, in clipped sRGB, under
+    ``render_lights`` flashes around the photo's (as a calibrated scene's other photos are taken;
+    the flash renderer, ``render.render_flash``). Where a glossy lobe makes a misread relief cost
+    more than none (glints, foil), it teaches the reader to read less. 0: the slope's error alone."""
+    render_lights: int = 3
+    """Flashes of the re-rendering loss per crop."""
     max_minutes: float = 0.0
     """Stop with a checkpoint after this long [min]; 0: run to ``steps``."""
     threads: int = 2
@@ -75,9 +83,22 @@ class ReliefTrainingConfig:
     """The reader's first level's channels (``ReliefReaderConfig.width``)."""
 
 
-def photographed(seed: int, config: ReliefTrainingConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """One training material of ``seed``: the reader's inputs (9, S, S) and the target (2, S, S),
-    the true normals' x and y above the band, both float16."""
+@dataclass
+class PoolMaterial:
+    """One material of the training pool, its tensors float16 at ``ReliefTrainingConfig.size``."""
+
+    inputs: torch.Tensor
+    """(READER_CHANNELS, S, S) the reader's inputs of its photo."""
+    target: torch.Tensor
+    """(2, S, S) the true normals' x and y above the band."""
+    maps: torch.Tensor
+    """(10, S, S) the true maps."""
+    fov: float
+    """The photo's field of view [deg]."""
+
+
+def photographed(seed: int, config: ReliefTrainingConfig) -> PoolMaterial:
+    """One training material of ``seed``, photographed once as a phone takes it."""
     from ..data.procedural import generate
     from ..data.synth import (PHONE_PHOTOS, SynthesisConfig, flash_cone_falloff, sample_camera, sample_fov,
                               sample_offsets, simulate_photo)
@@ -100,7 +121,7 @@ def photographed(seed: int, config: ReliefTrainingConfig) -> tuple[torch.Tensor,
     photo = simulate_photo(radiance, generator, synthesis, camera=camera)
     inputs = reader_inputs(photo, light, (config.band, config.band), fov, synthesis.convention)
     target = above_band(maps[:, 0:2], config.band)
-    return inputs[0].half(), target[0].half()
+    return PoolMaterial(inputs[0].half(), target[0].half(), maps[0].half(), float(fov))
 
 
 def above_band(values: torch.Tensor, band: int) -> torch.Tensor:
@@ -108,22 +129,83 @@ def above_band(values: torch.Tensor, band: int) -> torch.Tensor:
     return values - upsample_bilinear(downsample(values, band), *values.shape[-2:])
 
 
-def mirrored(inputs: torch.Tensor, target: torch.Tensor, flips: tuple[bool, bool, bool]):
-    """The crop (B, C, H, W) pair mirrored: columns, rows, then transposed, with its vectors' x and
-    y turned along (pixel rows run down, y up: a transposition maps (x, y) to (-y, -x))."""
-    x_in, y_in = VECTOR_CHANNELS
-    inputs, target = inputs.clone(), target.clone()
+def mirror(image: torch.Tensor, vectors: tuple[int, int], flips: tuple[bool, bool, bool]) -> torch.Tensor:
+    """``image`` (B, C, H, W) mirrored: its columns, its rows, then transposed, as ``flips`` says,
+    the x and y of the vector in ``vectors`` (channels) turned along (pixel rows run down, y up: a
+    transposition maps (x, y) to (-y, -x))."""
+    x, y = vectors
+    image = image.clone()
     if flips[0]:
-        inputs, target = inputs.flip(-1), target.flip(-1)
-        inputs[:, x_in], target[:, 0] = -inputs[:, x_in], -target[:, 0]
+        image = image.flip(-1)
+        image[:, x] = -image[:, x]
     if flips[1]:
-        inputs, target = inputs.flip(-2), target.flip(-2)
-        inputs[:, y_in], target[:, 1] = -inputs[:, y_in], -target[:, 1]
+        image = image.flip(-2)
+        image[:, y] = -image[:, y]
     if flips[2]:
-        inputs, target = inputs.transpose(-1, -2).clone(), target.transpose(-1, -2).clone()
-        inputs[:, [x_in, y_in]] = -inputs[:, [y_in, x_in]]
-        target[:, [0, 1]] = -target[:, [1, 0]]
-    return inputs, target
+        image = image.transpose(-1, -2).clone()
+        image[:, [x, y]] = -image[:, [y, x]]
+    return image
+
+
+def mirror_points(points: torch.Tensor, flips: tuple[bool, bool, bool]) -> torch.Tensor:
+    """Positions (..., 3) about the image's centre, mirrored as ``mirror`` mirrors an image."""
+    points = points.clone()
+    if flips[0]:
+        points[..., 0] = -points[..., 0]
+    if flips[1]:
+        points[..., 1] = -points[..., 1]
+    if flips[2]:
+        points[..., [0, 1]] = -points[..., [1, 0]]
+    return points
+
+
+def mirrored(inputs: torch.Tensor, target: torch.Tensor, flips: tuple[bool, bool, bool]):
+    """The crop's inputs and target (B, C, H, W) mirrored alike (``mirror``)."""
+    return mirror(inputs, VECTOR_CHANNELS, flips), mirror(target, (0, 1), flips)
+
+
+def around_flashes(count: int, fov: float, generator: random.Random) -> torch.Tensor:
+    """(count, 3) flash positions around the photo's [patch half-widths], as ``data.scenes`` takes a
+    calibrated scene's other photos: directions uniform over the disc of the hand-held limit,
+    heights within -8 / +12 % of the camera's."""
+    height = constants.camera_height(fov)
+    limit = math.tan(math.radians(constants.MAX_OFFSET_DEG))
+    flashes = []
+    for _ in range(count):
+        radius, azimuth = math.sqrt(generator.random()) * limit, 2 * math.pi * generator.random()
+        level = height * (0.92 + 0.2 * generator.random())
+        flashes.append([level * radius * math.cos(azimuth), level * radius * math.sin(azimuth), level])
+    return torch.tensor(flashes)
+
+
+def framed_flashes(flashes: torch.Tensor, top: int, left: int, crop: int, size: int) -> torch.Tensor:
+    """Flash positions (..., 3) over a ``size`` px image [its patch half-widths] as seen from the
+    centre of its ``crop`` px crop at (``top``, ``left``): the crop rendered as a sample of its own,
+    of half-width ``crop / size``, under them is that part of the image's render."""
+    centre = torch.tensor([(2 * left + crop) / size - 1.0, 1.0 - (2 * top + crop) / size, 0.0])
+    return flashes - centre
+
+
+def rerender_error(maps: torch.Tensor, slope: torch.Tensor, target: torch.Tensor, lights: torch.Tensor,
+                   extent: float, intensity: torch.Tensor) -> torch.Tensor:
+    """The mean squared clipped-sRGB difference between the true crops ``maps`` (B, 10, h, w) and
+    the same with their normals' x and y above the band ``target`` (B, 2, h, w) replaced by ``slope``,
+    rendered under ``lights`` (B, K, 3) (the crop framed as a sample of half-width ``extent``, the
+    lights relative to its centre) at ``intensity`` (B,) [W/sr]."""
+    from ..imageio import linear_to_srgb
+    from ..render import render_flash
+
+    read = maps.clone()
+    normal = torch.cat([maps[:, 0:2] - target + slope, maps[:, 2:3].clamp(min=1e-3)], dim=1)
+    read[:, constants.NORMAL] = normal / normal.norm(dim=1, keepdim=True)
+    errors = []
+    for item in range(maps.shape[0]):  # one intensity per render
+        pair = torch.cat([read[item:item + 1], maps[item:item + 1]])
+        rendered = render_flash(pair, lights[item:item + 1].expand(2, -1, -1), intensity=float(intensity[item]),
+                                extent=extent, convention=constants.DEFAULT_CONVENTION)
+        shown = linear_to_srgb(rendered.clamp(1e-8, 1.0))
+        errors.append((shown[0] - shown[1].detach()).square().mean())
+    return torch.stack(errors).mean()
 
 
 def validation_set(config: ReliefTrainingConfig) -> list[tuple[torch.Tensor, torch.Tensor, float, torch.Tensor]]:
@@ -142,23 +224,30 @@ def validation_set(config: ReliefTrainingConfig) -> list[tuple[torch.Tensor, tor
     return items
 
 
-def validate(reader: ReliefReader, items, band: int) -> dict:
-    """The reader's slope above the band against the truth's on ``items`` (``validation_set``):
-    mean squared error, energy over the truth's and correlation, pooled over the materials, and the
-    materials' mean correlation."""
-    reader.eval()
+def slope_figures(read, items) -> dict:
+    """How a reading ``read(photo, light, fov)`` -> slope (1, 2, H, W) above the band compares with
+    the truth's on ``items`` (``validation_set``), pooled over the materials: the mean squared
+    error, the energy over the truth's and the correlation; the materials' mean correlation and the
+    truth's mean energy."""
     read_energy = true_energy = cross = error = 0.0
     correlations = []
     for photo, light, fov, target in items:
-        slope = read_relief(reader, photo, light, fov, (band, band))
+        slope = read(photo, light, fov)
         a, b, c = float(slope.square().mean()), float(target.square().mean()), float((slope * target).mean())
         read_energy, true_energy, cross = read_energy + a, true_energy + b, cross + c
         error += float((slope - target).square().mean())
         correlations.append(c / math.sqrt(a * b + 1e-30))
-    reader.train()
     return {"mse": error / len(items), "energy": read_energy / true_energy,
             "correlation": cross / math.sqrt(read_energy * true_energy + 1e-30),
-            "mean_correlation": sum(correlations) / len(correlations)}
+            "mean_correlation": sum(correlations) / len(correlations), "truth_energy": true_energy / len(items)}
+
+
+def validate(reader: ReliefReader, items, band: int) -> dict:
+    """``slope_figures`` of the reader (``read_relief``) on ``items``."""
+    reader.eval()
+    figures = slope_figures(lambda photo, light, fov: read_relief(reader, photo, light, fov, (band, band)), items)
+    reader.train()
+    return figures
 
 
 def plot_curve(log: Path, output: Path) -> Path | None:
@@ -208,8 +297,9 @@ def train_reader(config: ReliefTrainingConfig, resume: bool = False, progress: b
             raise InputError(f"{out} already holds a run: pass --resume to continue it or choose another --out")
         reader = ReliefReader(ReliefReaderConfig(width=config.width))
         tensors, step, next_material, best = {}, 0, 0, math.inf
-    if config.crop % reader.config.multiple or config.size % config.crop:
-        raise InputError(f"crop {config.crop} must be a multiple of {reader.config.multiple} dividing size {config.size}")
+    if config.crop % reader.config.multiple or not 2 * CROP_MARGIN < config.crop <= config.size:
+        raise InputError(f"crop {config.crop} must be a multiple of {reader.config.multiple} above "
+                         f"{2 * CROP_MARGIN} and at most size {config.size}")
     optimizer = torch.optim.Adam(reader.parameters(), lr=config.learning_rate)
     if tensors:
         state = optimizer.state_dict()
@@ -247,18 +337,30 @@ def train_reader(config: ReliefTrainingConfig, resume: bool = False, progress: b
         rate = config.learning_rate * 0.5 * (1.0 + math.cos(math.pi * step / config.steps))
         for group in optimizer.param_groups:
             group["lr"] = rate
-        inputs, targets = [], []
+        inputs, targets, maps, lights, intensities = [], [], [], [], []
         for _ in range(config.batch):
-            features, target = pool[crops.randrange(len(pool))]
+            material = pool[crops.randrange(len(pool))]
             top, left = (crops.randrange(0, config.size - config.crop + 1, 8) for _ in range(2))
             window = (slice(None), slice(top, top + config.crop), slice(left, left + config.crop))
-            pair = mirrored(features[window][None].float(), target[window][None].float(),
-                            tuple(crops.random() < 0.5 for _ in range(3)))
-            inputs.append(pair[0])
-            targets.append(pair[1])
+            flips = tuple(crops.random() < 0.5 for _ in range(3))
+            crop_inputs, crop_target = mirrored(material.inputs[window][None].float(),
+                                                material.target[window][None].float(), flips)
+            inputs.append(crop_inputs)
+            targets.append(crop_target)
+            if config.render_weight:
+                maps.append(mirror(material.maps[window][None].float(), (0, 1), flips))
+                flashes = framed_flashes(around_flashes(config.render_lights, material.fov, crops),
+                                         top, left, config.crop, config.size)
+                lights.append(mirror_points(flashes, flips)[None])
+                intensities.append(math.pi * constants.camera_height(material.fov) ** 2)
         inputs, targets = torch.cat(inputs), torch.cat(targets)
         margin = (slice(None), slice(None), slice(CROP_MARGIN, -CROP_MARGIN), slice(CROP_MARGIN, -CROP_MARGIN))
-        loss = (reader(inputs) - targets)[margin].square().mean()
+        slope = reader(inputs)
+        loss = (slope - targets)[margin].square().mean()
+        if config.render_weight:
+            loss = loss + config.render_weight * rerender_error(
+                torch.cat(maps)[margin], slope[margin], targets[margin], torch.cat(lights),
+                (config.crop - 2 * CROP_MARGIN) / config.size, torch.tensor(intensities))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

@@ -12,7 +12,8 @@ from mideepbasis import geometry
 from mideepbasis.errors import InputError
 from mideepbasis.model.relief_reader import (CONTRAST_LIMIT, READER_CHANNELS, ReliefReader, ReliefReaderConfig,
                                              load_reader, read_relief, reader_inputs, save_reader)
-from mideepbasis.train.relief_reader import ReliefTrainingConfig, mirrored, train_reader
+from mideepbasis.train.relief_reader import (ReliefTrainingConfig, framed_flashes, mirror, mirror_points, mirrored,
+                                             rerender_error, train_reader)
 
 FOV = 45.0
 
@@ -77,6 +78,45 @@ def test_mirrored_targets_turn_as_the_normals_of_a_mirrored_surface():
     assert torch.allclose(transposed[:, 1], torch.tensor(0.3)) and transposed[:, 0].abs().max() == 0
 
 
+def test_a_mirrored_crop_framed_as_a_sample_renders_as_that_part_of_the_image():
+    """The re-rendering loss renders each crop on its own, mirrored: it must be the crop of the
+    whole image's render, mirrored."""
+    from mideepbasis.data.procedural import generate
+    from mideepbasis.render import render_flash
+
+    maps = generate(3, size=64).to_tensor()[None]
+    flashes = torch.tensor([[0.3, -0.2, 2.2], [-0.5, 0.1, 2.6]])
+    whole = render_flash(maps, flashes[None], intensity=5.0)[0]
+    top, left, crop = 8, 24, 32
+    part = whole[..., top:top + crop, left:left + crop]
+    for flips in ((False, False, False), (True, False, True), (False, True, False), (True, True, True)):
+        crop_maps = mirror(maps[..., top:top + crop, left:left + crop], (0, 1), flips)
+        lights = mirror_points(framed_flashes(flashes, top, left, crop, 64), flips)
+        rendered = render_flash(crop_maps, lights[None], intensity=5.0, extent=crop / 64)[0]
+        expected = part
+        if flips[0]:
+            expected = expected.flip(-1)
+        if flips[1]:
+            expected = expected.flip(-2)
+        if flips[2]:
+            expected = expected.transpose(-1, -2)
+        assert torch.allclose(rendered, expected, atol=1e-4, rtol=1e-3), flips
+
+
+def test_the_rerendering_error_is_zero_for_the_true_slope_and_grows_with_a_misread_one():
+    from mideepbasis.data.procedural import generate
+    from mideepbasis.train.relief_reader import above_band
+
+    maps = generate(5, size=64, family="concrete").to_tensor()[None]
+    target = above_band(maps[:, 0:2], 8)
+    lights = torch.tensor([[[0.2, 0.1, 2.4], [-0.3, 0.2, 2.2]]])
+    intensity = torch.tensor([math.pi * 2.3**2])
+    assert float(rerender_error(maps, target, target, lights, 1.0, intensity)) < 1e-10
+    flat = float(rerender_error(maps, torch.zeros_like(target), target, lights, 1.0, intensity))
+    doubled = float(rerender_error(maps, 2 * target, target, lights, 1.0, intensity))
+    assert flat > 1e-5 and doubled > 1e-5
+
+
 def test_a_reader_round_trips_through_its_file_and_reads_above_the_band(tmp_path):
     torch.manual_seed(0)
     reader = ReliefReader(ReliefReaderConfig(width=8, encoder_blocks=(1, 1), middle_blocks=1))
@@ -107,9 +147,9 @@ def test_a_file_that_is_not_a_reader_is_refused_in_one_line(tmp_path):
 
 
 def test_a_training_run_validates_checkpoints_and_resumes_where_it_stopped(tmp_path):
-    config = ReliefTrainingConfig(out=str(tmp_path / "run"), steps=24, batch=2, crop=32, size=64, band=8, pool=2,
+    config = ReliefTrainingConfig(out=str(tmp_path / "run"), steps=24, batch=2, crop=48, size=64, band=8, pool=2,
                                   refresh_every=4, learning_rate=2e-3, validate_every=12, validation_count=2,
-                                  width=8, threads=1)
+                                  width=8, threads=1, render_weight=1.0, render_lights=2)
     train_reader(config, resume=False, progress=False)
     reader, document, tensors = load_reader(tmp_path / "run" / "checkpoint.safetensors")
     assert document["step"] == 24 and document["next_material"] == 2 + 24 // 4
