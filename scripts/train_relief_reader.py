@@ -3,9 +3,11 @@ at 1024 px, on the CPU, resumable:
 
     nice -n 19 .venv/bin/python scripts/train_relief_reader.py --out runs/relief_reader --max-minutes 120
     nice -n 19 .venv/bin/python scripts/train_relief_reader.py --out runs/relief_reader --resume --max-minutes 120
+    nice -n 19 .venv/bin/python scripts/train_relief_reader.py --out runs/relief_unit --init-from-unit \
+        --render-weight 4 --max-minutes 120      # from the shipped normal unit, with the re-rendering loss
 
 Every option is a field of ``train.relief_reader.ReliefTrainingConfig``; on ``--resume`` the run's
-stored material settings (size, band, crop, pool, stream seed, width) are kept. What it writes under
+stored material settings (size, band, crop, pool, stream seed, width, the unit's start) are kept. What it writes under
 ``--out``: ``checkpoint.safetensors`` (weights and Adam's state), ``best.safetensors`` (the weights
 of the least validation error), ``log.jsonl`` and ``curve.png``.
 """

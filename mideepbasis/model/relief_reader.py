@@ -17,7 +17,10 @@ What it reads (``reader_inputs``), per pixel of the photo at its working size:
 - the smooth shading ``log(L(lum) / falloff)``, the flash's falloff over a white Lambertian
   divided out, less its mean: where the highlight lies (1);
 - the smooth level ``log(L(lum))`` scaled to about [-1, 1]: how noisy the pixel is (1);
-- the unit vector from the pixel's point towards the flash (3).
+- the unit vector from the pixel's point towards the flash (3);
+- with ``ReliefReaderConfig.unit_inputs``, the normal unit's own inputs too (``inputs.relief_inputs``,
+  7): a reader of the unit's architecture can then start from the shipped unit's weights
+  (``from_normal_unit``) and learn the band from there.
 
 Shapes: photo (B, 3, H, W) linear; light (B, 3) [patch half-widths]; slope (B, 2, H, W), the x and
 y of the normal to add above the band.
@@ -37,11 +40,15 @@ from torch import nn
 from .. import constants, geometry
 from ..errors import InputError
 from ..resampling import downsample, upsample_bilinear
-from .inputs import flash_falloff
+from .inputs import RELIEF_CHANNELS, flash_falloff, relief_inputs
 from .nafnet import NAFNet
 
-#: Channels of ``reader_inputs``.
+#: Channels of ``reader_inputs`` without the normal unit's.
 READER_CHANNELS = 9
+
+#: The x and y channels of the vectors among ``reader_inputs`` (the direction to the flash; with
+#: the unit's inputs, its 3 l_x and 3 l_y too): they change sign with the image's mirrorings.
+VECTOR_CHANNELS = ((6, 7), (READER_CHANNELS + 5, READER_CHANNELS + 6))
 
 #: Largest side the reader reads at [pixels]: a larger photo is area-averaged to it first.
 READ_SIZE = 1024
@@ -66,6 +73,15 @@ class ReliefReaderConfig:
     """NAF blocks per encoder level (one level per entry; the decoder mirrors them)."""
     middle_blocks: int = 2
     """NAF blocks at the bottom."""
+    unit_inputs: bool = False
+    """Read the normal unit's inputs beside its own (``reader_inputs``)."""
+    bounded: bool = False
+    """Bound the slope by a tanh, as the normal unit does."""
+
+    @property
+    def in_channels(self) -> int:
+        """Channels of its inputs."""
+        return READER_CHANNELS + (RELIEF_CHANNELS if self.unit_inputs else 0)
 
     @property
     def multiple(self) -> int:
@@ -74,22 +90,42 @@ class ReliefReaderConfig:
 
 
 class ReliefReader(nn.Module):
-    """``reader_inputs`` (B, READER_CHANNELS, H, W) -> the slope above the band (B, 2, H, W)."""
+    """``reader_inputs`` (B, config.in_channels, H, W) -> the slope above the band (B, 2, H, W)."""
 
     def __init__(self, config: ReliefReaderConfig = ReliefReaderConfig()):
         super().__init__()
         self.config = config
         blocks = tuple(config.encoder_blocks)
-        self.net = NAFNet(READER_CHANNELS, 2, config.width, blocks, config.middle_blocks, tuple(reversed(blocks)), 3)
+        self.net = NAFNet(config.in_channels, 2, config.width, blocks, config.middle_blocks, tuple(reversed(blocks)), 3)
 
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
-        return self.net(inputs)
+        slope = self.net(inputs)
+        return torch.tanh(slope) if self.config.bounded else slope
+
+
+def from_normal_unit(model) -> ReliefReader:
+    """A reader of the normal unit's architecture that reads as the shipped network's ``model``
+    unit reads (one octave, before the band is taken out): its weights copied, its own inputs' first
+    weights 0."""
+    unit = model.normal_unit
+    config = model.config
+    reader = ReliefReader(ReliefReaderConfig(width=config.normal_unit_width, encoder_blocks=tuple(config.normal_unit_blocks),
+                                             middle_blocks=config.normal_unit_middle_blocks, unit_inputs=True,
+                                             bounded=True))
+    state = {name: value.clone() for name, value in unit.state_dict().items()}
+    intro = torch.zeros_like(reader.net.intro.weight)
+    intro[:, READER_CHANNELS:] = state["intro.weight"]
+    state["intro.weight"] = intro
+    reader.net.load_state_dict(state)
+    return reader
 
 
 def reader_inputs(photo: torch.Tensor, light: torch.Tensor, low_size: tuple[int, int], fov: float,
-                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
+                  convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0,
+                  unit_inputs: bool = False) -> torch.Tensor:
     """What the reader reads of ``photo`` (B, 3, H, W) taken with the flash at ``light`` (B, 3) or
-    (3,): (B, READER_CHANNELS, H, W) (module docstring); ``low_size`` the capture network's (h, w)."""
+    (3,): (B, READER_CHANNELS, H, W) (module docstring), with ``unit_inputs`` the normal unit's
+    inputs after them; ``low_size`` the capture network's (h, w)."""
     batch, _, height, width = photo.shape
     photo = photo.float().clamp(0.0, 1.0)
     light = light.float().reshape(-1, 3).expand(batch, 3).to(photo.device)
@@ -103,7 +139,10 @@ def reader_inputs(photo: torch.Tensor, light: torch.Tensor, low_size: tuple[int,
     points = geometry.pixel_points(height, width, device=photo.device, dtype=photo.dtype)[None] * extent
     towards = light.view(batch, 3, 1, 1) - points
     direction = towards / geometry.vector_length(towards, dim=1, keepdim=True)
-    return torch.cat([contrast, 0.5 * shading, level, direction], dim=1)
+    own = torch.cat([contrast, 0.5 * shading, level, direction], dim=1)
+    if not unit_inputs:
+        return own
+    return torch.cat([own, relief_inputs(photo, light, fov, convention, extent)], dim=1)
 
 
 def read_relief(reader: ReliefReader, photo: torch.Tensor, light: torch.Tensor, fov: float,
@@ -125,7 +164,8 @@ def read_relief(reader: ReliefReader, photo: torch.Tensor, light: torch.Tensor, 
     small = photo.float() if size == (height, width) else downsample(photo.float(), size)
     device = next(reader.parameters()).device
     with torch.no_grad():
-        slope = reader(reader_inputs(small, light, low_size, fov, convention, extent).to(device)).float().cpu()
+        inputs = reader_inputs(small, light, low_size, fov, convention, extent, reader.config.unit_inputs)
+        slope = reader(inputs.to(device)).float().cpu()
     return slope - upsample_bilinear(downsample(slope, low_size), *size)
 
 

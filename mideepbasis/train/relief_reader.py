@@ -23,7 +23,8 @@ import torch
 
 from .. import constants, geometry
 from ..errors import InputError
-from ..model.relief_reader import ReliefReader, ReliefReaderConfig, load_reader, reader_inputs, read_relief, save_reader
+from ..model.relief_reader import (VECTOR_CHANNELS, ReliefReader, ReliefReaderConfig, from_normal_unit, load_reader,
+                                   read_relief, reader_inputs, save_reader)
 from ..resampling import downsample, upsample_bilinear
 
 #: First seed of the validation materials: the detail benchmark's calibration set (``benchmarks/
@@ -34,9 +35,6 @@ VALIDATION_SEED = 500001000
 #: reader sees only the crop.
 CROP_MARGIN = 16
 
-#: Channels of ``reader_inputs`` that hold x and y components of a vector (the direction to the
-#: flash); they change sign with the image's mirrorings.
-VECTOR_CHANNELS = (6, 7)
 
 
 @dataclass(frozen=True)
@@ -81,6 +79,10 @@ class ReliefTrainingConfig:
     """Torch's CPU threads."""
     width: int = 16
     """The reader's first level's channels (``ReliefReaderConfig.width``)."""
+    init_from_unit: bool = False
+    """Start from the shipped network's normal unit (``relief_reader.from_normal_unit``: its
+    architecture, its inputs beside the reader's own, its tanh) rather than from random weights;
+    ``width`` is then the unit's."""
 
 
 @dataclass
@@ -119,7 +121,8 @@ def photographed(seed: int, config: ReliefTrainingConfig) -> PoolMaterial:
         exponent = low + (high - low) * torch.rand(1, generator=generator)
         radiance = radiance * flash_cone_falloff(light, exponent, *radiance.shape[-2:])
     photo = simulate_photo(radiance, generator, synthesis, camera=camera)
-    inputs = reader_inputs(photo, light, (config.band, config.band), fov, synthesis.convention)
+    inputs = reader_inputs(photo, light, (config.band, config.band), fov, synthesis.convention,
+                           unit_inputs=config.init_from_unit)
     target = above_band(maps[:, 0:2], config.band)
     return PoolMaterial(inputs[0].half(), target[0].half(), maps[0].half(), float(fov))
 
@@ -129,21 +132,24 @@ def above_band(values: torch.Tensor, band: int) -> torch.Tensor:
     return values - upsample_bilinear(downsample(values, band), *values.shape[-2:])
 
 
-def mirror(image: torch.Tensor, vectors: tuple[int, int], flips: tuple[bool, bool, bool]) -> torch.Tensor:
+def mirror(image: torch.Tensor, vectors: tuple[tuple[int, int], ...], flips: tuple[bool, bool, bool]) -> torch.Tensor:
     """``image`` (B, C, H, W) mirrored: its columns, its rows, then transposed, as ``flips`` says,
-    the x and y of the vector in ``vectors`` (channels) turned along (pixel rows run down, y up: a
-    transposition maps (x, y) to (-y, -x))."""
-    x, y = vectors
+    the x and y channels of each vector in ``vectors`` (those within C) turned along (pixel rows run
+    down, y up: a transposition maps (x, y) to (-y, -x))."""
+    pairs = [(x, y) for x, y in vectors if y < image.shape[1]]
     image = image.clone()
     if flips[0]:
         image = image.flip(-1)
-        image[:, x] = -image[:, x]
+        for x, _ in pairs:
+            image[:, x] = -image[:, x]
     if flips[1]:
         image = image.flip(-2)
-        image[:, y] = -image[:, y]
+        for _, y in pairs:
+            image[:, y] = -image[:, y]
     if flips[2]:
         image = image.transpose(-1, -2).clone()
-        image[:, [x, y]] = -image[:, [y, x]]
+        for x, y in pairs:
+            image[:, [x, y]] = -image[:, [y, x]]
     return image
 
 
@@ -161,7 +167,7 @@ def mirror_points(points: torch.Tensor, flips: tuple[bool, bool, bool]) -> torch
 
 def mirrored(inputs: torch.Tensor, target: torch.Tensor, flips: tuple[bool, bool, bool]):
     """The crop's inputs and target (B, C, H, W) mirrored alike (``mirror``)."""
-    return mirror(inputs, VECTOR_CHANNELS, flips), mirror(target, (0, 1), flips)
+    return mirror(inputs, VECTOR_CHANNELS, flips), mirror(target, ((0, 1),), flips)
 
 
 def around_flashes(count: int, fov: float, generator: random.Random) -> torch.Tensor:
@@ -289,17 +295,27 @@ def train_reader(config: ReliefTrainingConfig, resume: bool = False, progress: b
         reader, document, tensors = load_reader(checkpoint)
         stored = document.get("training", {})
         config = replace(config, **{key: value for key, value in stored.items()
-                                    if key in ("crop", "size", "band", "pool", "stream_seed", "width")})
+                                    if key in ("crop", "size", "band", "pool", "stream_seed", "width",
+                                               "init_from_unit")})
         step, next_material = document["step"], document["next_material"]
         best = document.get("best_mse", math.inf)
     else:
         if checkpoint.exists():
             raise InputError(f"{out} already holds a run: pass --resume to continue it or choose another --out")
-        reader = ReliefReader(ReliefReaderConfig(width=config.width))
+        if config.init_from_unit:
+            from ..model.checkpoint import load_model
+
+            reader = from_normal_unit(load_model(None))
+        else:
+            reader = ReliefReader(ReliefReaderConfig(width=config.width))
         tensors, step, next_material, best = {}, 0, 0, math.inf
-    if config.crop % reader.config.multiple or not 2 * CROP_MARGIN < config.crop <= config.size:
+    if (config.crop % reader.config.multiple or not 2 * CROP_MARGIN < config.crop <= config.size
+            or config.crop * config.band % config.size):
         raise InputError(f"crop {config.crop} must be a multiple of {reader.config.multiple} above "
-                         f"{2 * CROP_MARGIN} and at most size {config.size}")
+                         f"{2 * CROP_MARGIN}, at most size {config.size}, and hold a whole number of the band's "
+                         f"pixels ({config.size // config.band} px each)")
+    # The band of a crop: read_relief takes the whole photo's out of the reader's slope.
+    crop_band = config.crop * config.band // config.size
     optimizer = torch.optim.Adam(reader.parameters(), lr=config.learning_rate)
     if tensors:
         state = optimizer.state_dict()
@@ -348,14 +364,14 @@ def train_reader(config: ReliefTrainingConfig, resume: bool = False, progress: b
             inputs.append(crop_inputs)
             targets.append(crop_target)
             if config.render_weight:
-                maps.append(mirror(material.maps[window][None].float(), (0, 1), flips))
+                maps.append(mirror(material.maps[window][None].float(), ((0, 1),), flips))
                 flashes = framed_flashes(around_flashes(config.render_lights, material.fov, crops),
                                          top, left, config.crop, config.size)
                 lights.append(mirror_points(flashes, flips)[None])
                 intensities.append(math.pi * constants.camera_height(material.fov) ** 2)
         inputs, targets = torch.cat(inputs), torch.cat(targets)
         margin = (slice(None), slice(None), slice(CROP_MARGIN, -CROP_MARGIN), slice(CROP_MARGIN, -CROP_MARGIN))
-        slope = reader(inputs)
+        slope = above_band(reader(inputs), crop_band)
         loss = (slope - targets)[margin].square().mean()
         if config.render_weight:
             loss = loss + config.render_weight * rerender_error(

@@ -47,14 +47,15 @@ def test_the_contrast_is_the_photo_against_its_band_and_clipped():
     assert inputs[0, 0:4].max() <= CONTRAST_LIMIT + 1e-6
 
 
+@pytest.mark.parametrize("unit_inputs", [False, True])
 @pytest.mark.parametrize("flips", [(True, False, False), (False, True, False), (False, False, True),
                                    (True, True, True)])
-def test_mirrored_inputs_are_the_inputs_of_the_mirrored_photo(flips):
+def test_mirrored_inputs_are_the_inputs_of_the_mirrored_photo(flips, unit_inputs):
     """The training's mirrorings turn the vector channels as the photo's geometry turns them:
     mirroring the inputs of a photo gives the inputs of the mirrored photo under the mirrored flash."""
     photo = _photo()
     light = torch.tensor([[0.3, -0.2, 2.5]])
-    inputs = reader_inputs(photo, light, (16, 16), FOV)
+    inputs = reader_inputs(photo, light, (16, 16), FOV, unit_inputs=unit_inputs)
     mirrored_inputs, _ = mirrored(inputs, torch.zeros(1, 2, 64, 64), flips)
     turned_photo, (x, y) = photo, (0.3, -0.2)
     if flips[0]:
@@ -63,8 +64,23 @@ def test_mirrored_inputs_are_the_inputs_of_the_mirrored_photo(flips):
         turned_photo, y = turned_photo.flip(-2), -y
     if flips[2]:
         turned_photo, (x, y) = turned_photo.transpose(-1, -2), (-y, -x)
-    expected = reader_inputs(turned_photo, torch.tensor([[x, y, 2.5]]), (16, 16), FOV)
+    expected = reader_inputs(turned_photo, torch.tensor([[x, y, 2.5]]), (16, 16), FOV, unit_inputs=unit_inputs)
     assert torch.allclose(mirrored_inputs, expected, atol=1e-5)
+
+
+def test_a_reader_from_the_normal_unit_reads_as_the_unit():
+    from mideepbasis.model.checkpoint import load_model
+    from mideepbasis.model.inputs import relief_inputs
+    from mideepbasis.model.relief_reader import from_normal_unit
+
+    model = load_model(None)
+    reader = from_normal_unit(model).eval()
+    photo, light = _photo(size=64), torch.tensor([[0.2, 0.1, 2.4]])
+    with torch.no_grad():
+        read = reader(reader_inputs(photo, light, (16, 16), FOV, unit_inputs=True))
+        unit = torch.tanh(model.normal_unit(relief_inputs(photo, light, FOV)))
+    assert float(unit.abs().max()) > 1e-3
+    assert torch.allclose(read, unit, atol=1e-5)
 
 
 def test_mirrored_targets_turn_as_the_normals_of_a_mirrored_surface():
@@ -90,7 +106,7 @@ def test_a_mirrored_crop_framed_as_a_sample_renders_as_that_part_of_the_image():
     top, left, crop = 8, 24, 32
     part = whole[..., top:top + crop, left:left + crop]
     for flips in ((False, False, False), (True, False, True), (False, True, False), (True, True, True)):
-        crop_maps = mirror(maps[..., top:top + crop, left:left + crop], (0, 1), flips)
+        crop_maps = mirror(maps[..., top:top + crop, left:left + crop], ((0, 1),), flips)
         lights = mirror_points(framed_flashes(flashes, top, left, crop, 64), flips)
         rendered = render_flash(crop_maps, lights[None], intensity=5.0, extent=crop / 64)[0]
         expected = part
@@ -162,3 +178,13 @@ def test_a_training_run_validates_checkpoints_and_resumes_where_it_stopped(tmp_p
     train_reader(config.__class__(**{**config.__dict__, "steps": 36}), resume=True, progress=False)
     _, document, _ = load_reader(tmp_path / "run" / "checkpoint.safetensors")
     assert document["step"] == 36 and document["next_material"] == 2 + 36 // 4
+
+
+def test_a_run_from_the_normal_unit_keeps_its_architecture_and_inputs(tmp_path):
+    config = ReliefTrainingConfig(out=str(tmp_path / "unit"), steps=2, batch=1, crop=48, size=64, band=8, pool=1,
+                                  refresh_every=10, validate_every=0, threads=1, init_from_unit=True)
+    train_reader(config, resume=False, progress=False)
+    reader, document, _ = load_reader(tmp_path / "unit" / "checkpoint.safetensors")
+    assert reader.config.unit_inputs and reader.config.bounded
+    assert reader.net.intro.weight.shape[1] == reader.config.in_channels == READER_CHANNELS + 7
+    assert document["training"]["init_from_unit"] is True
