@@ -7,7 +7,8 @@ photographed as ``evaluate`` photographs them).
 
 Rows: the shipped network's normal unit (``capturing.detail.fine_relief``, unweighted), the same
 scaled by 0.6 (near its least error: an estimate of correlation c is best at c^2 of the truth's
-energy), and each ``--reader`` (``model.relief_reader.read_relief``). Figures, pooled over the
+energy), the unit as one octave, as a reader started from it reads before training
+(``relief_reader.from_normal_unit``), and each ``--reader`` (``model.relief_reader.read_relief``). Figures, pooled over the
 materials: the mean squared error of the slope, its energy over the truth's, and its correlation
 with the truth's; the materials' mean correlation. Entry ``relief_reader`` of
 ``results/model_quality.json``.
@@ -24,7 +25,7 @@ from common import RESULTS, write_section
 
 from mideepbasis.capturing.detail import fine_relief
 from mideepbasis.model.checkpoint import load_model
-from mideepbasis.model.relief_reader import load_reader, read_relief
+from mideepbasis.model.relief_reader import from_normal_unit, load_reader, read_relief
 from mideepbasis.train.relief_reader import ReliefTrainingConfig, slope_figures, validation_set
 
 
@@ -43,6 +44,9 @@ def main() -> None:
     for scale in (1.0, 0.6):
         rows[f"normal unit x{scale:g}"] = slope_figures(
             lambda photo, light, fov: scale * fine_relief(model, photo, light[0], fov, low), items)
+    start = from_normal_unit(model).eval()
+    rows["the normal unit as one octave (a reader's start)"] = slope_figures(
+        lambda photo, light, fov: read_relief(start, photo, light, fov, low), items)
     for path in args.reader:
         reader, document, _ = load_reader(path)
         rows[f"{path} (step {document.get('step')})"] = slope_figures(
