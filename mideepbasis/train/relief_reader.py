@@ -25,7 +25,7 @@ from .. import constants, geometry
 from ..errors import InputError
 from ..model.relief_reader import (VECTOR_CHANNELS, ReliefReader, ReliefReaderConfig, from_normal_unit, load_reader,
                                    read_relief, reader_inputs, save_reader)
-from ..resampling import downsample, upsample_bilinear
+from ..evaluation.metrics import above_band
 
 #: First seed of the validation materials: the detail benchmark's calibration set (``benchmarks/
 #: detail.py --first-seed``), not its held-out figures' seeds.
@@ -125,11 +125,6 @@ def photographed(seed: int, config: ReliefTrainingConfig) -> PoolMaterial:
                            unit_inputs=config.init_from_unit)
     target = above_band(maps[:, 0:2], config.band)
     return PoolMaterial(inputs[0].half(), target[0].half(), maps[0].half(), float(fov))
-
-
-def above_band(values: torch.Tensor, band: int) -> torch.Tensor:
-    """(B, C, H, W) less its area average to ``band`` px, upsampled bilinearly back."""
-    return values - upsample_bilinear(downsample(values, band), *values.shape[-2:])
 
 
 def mirror(image: torch.Tensor, vectors: tuple[tuple[int, int], ...], flips: tuple[bool, bool, bool]) -> torch.Tensor:

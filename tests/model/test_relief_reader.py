@@ -121,7 +121,7 @@ def test_a_mirrored_crop_framed_as_a_sample_renders_as_that_part_of_the_image():
 
 def test_the_rerendering_error_is_zero_for_the_true_slope_and_grows_with_a_misread_one():
     from mideepbasis.data.procedural import generate
-    from mideepbasis.train.relief_reader import above_band
+    from mideepbasis.evaluation import above_band
 
     maps = generate(5, size=64, family="concrete").to_tensor()[None]
     target = above_band(maps[:, 0:2], 8)
