@@ -296,26 +296,22 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
         (B, 2, H', W') the x and y slope to add to the normals at the photo's size (bilinear up
         to it), H' and W' at most ``max_size``.
     """
-    if reader is not None:
-        from ..model.relief_reader import read_relief
+    from ..model.relief_reader import read_relief, read_size
 
+    if reader is not None:
         slope = read_relief(reader, photo, light, fov, low_size, max_size, convention, extent)
-        if matte is not None:
-            slope = slope * upsample_bilinear(matte.float()[None, None] ** FINE_RELIEF_MATTE_POWER, *slope.shape[-2:])
-        return slope * strength
-    multiple = model.config.normal_unit_stride
-    height, width = photo.shape[-2:]
-    scale = max(1.0, max(height, width) / max_size)
-    size = tuple(max(multiple, int(side / scale) // multiple * multiple) for side in (height, width))
-    small = photo.float() if size == (height, width) else downsample(photo.float(), size)
-    lights = light.float().reshape(-1, 3).expand(small.shape[0], 3)
-    device = next(model.parameters()).device
-    with torch.no_grad():
-        slope = model.octave_slope(model.relief_inputs(small.to(device), lights.to(device), fov))
-    slope = slope.float().to(photo.device)
-    slope = slope - upsample_bilinear(downsample(slope, low_size), *size)
+    else:
+        size = read_size(tuple(photo.shape[-2:]), max_size, model.config.normal_unit_stride)
+        small = photo.float() if size == tuple(photo.shape[-2:]) else downsample(photo.float(), size)
+        lights = light.float().reshape(-1, 3).expand(small.shape[0], 3)
+        device = next(model.parameters()).device
+        with torch.no_grad():
+            slope = model.octave_slope(model.relief_inputs(small.to(device), lights.to(device), fov))
+        slope = slope.float().to(photo.device)
+        slope = slope - upsample_bilinear(downsample(slope, low_size), *size)
     if matte is not None:
-        slope = slope * upsample_bilinear(matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER, *size)
+        weight = matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER
+        slope = slope * upsample_bilinear(weight, *slope.shape[-2:])
     return slope * strength
 
 

@@ -145,6 +145,13 @@ def reader_inputs(photo: torch.Tensor, light: torch.Tensor, low_size: tuple[int,
     return torch.cat([own, relief_inputs(photo, light, fov, convention, extent)], dim=1)
 
 
+def read_size(size: tuple[int, int], max_size: int, multiple: int) -> tuple[int, int]:
+    """The (h, w) a photo of ``size`` is read at: scaled down to at most ``max_size`` on its longer
+    side, each side then down to a multiple of ``multiple`` (at least one)."""
+    scale = max(1.0, max(size) / max_size)
+    return tuple(max(multiple, int(side / scale) // multiple * multiple) for side in size)
+
+
 def read_relief(reader: ReliefReader, photo: torch.Tensor, light: torch.Tensor, fov: float,
                 low_size: tuple[int, int], max_size: int = READ_SIZE,
                 convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
@@ -157,11 +164,8 @@ def read_relief(reader: ReliefReader, photo: torch.Tensor, light: torch.Tensor, 
     Returns:
         (B, 2, H', W') the x and y slope to add to the normals, H' and W' at most ``max_size``.
     """
-    multiple = reader.config.multiple
-    height, width = photo.shape[-2:]
-    scale = max(1.0, max(height, width) / max_size)
-    size = tuple(max(multiple, int(side / scale) // multiple * multiple) for side in (height, width))
-    small = photo.float() if size == (height, width) else downsample(photo.float(), size)
+    size = read_size(tuple(photo.shape[-2:]), max_size, reader.config.multiple)
+    small = photo.float() if size == tuple(photo.shape[-2:]) else downsample(photo.float(), size)
     device = next(reader.parameters()).device
     with torch.no_grad():
         inputs = reader_inputs(small, light, low_size, fov, convention, extent, reader.config.unit_inputs)
