@@ -99,7 +99,8 @@ class CaptureConfig:
     """With ``fine_relief``, a relief reader's weights (``model.relief_reader``, trained by
     ``scripts/train_relief_reader.py``): a network of its own, trained for the relief above the
     network's band, reads the normals' detail in place of the normal unit (weighted and scaled as
-    the unit's reading is). None: the normal unit."""
+    the unit's reading is). None: the normal unit. The readers trained so far read as the unit at
+    ``fine_relief_strength`` 0.5 does (benchmarks/README.md, detail: the relief reader)."""
 
     denoise_detail: bool = False
     """Take the photo's noise out of the detail step's fine contrast first (``detail.denoise_contrast``,
