@@ -495,11 +495,12 @@ class Capturer:
         normal_detail = (photo_relief_gain(photo.pixels, light, output.maps, photo.fov, self.convention, extent,
                                            matte=matte) if tested else 1.0)
         # The unit's slope is scaled by the relief test's gain: where that is 0 it would add nothing.
-        reader = loaded_reader(self.config.relief_reader) if self.config.relief_reader else None
-        fine = (fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte,
-                            strength=self.config.fine_relief_strength, reader=reader, convention=self.convention,
-                            extent=extent)
-                if fine_wanted and normal_detail > 0.0 else None)
+        fine = None
+        if fine_wanted and normal_detail > 0.0:
+            reader = loaded_reader(self.config.relief_reader) if self.config.relief_reader else None
+            fine = fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte,
+                               strength=self.config.fine_relief_strength, reader=reader, convention=self.convention,
+                               extent=extent)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine, denoise_detail=self.config.denoise_detail,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
