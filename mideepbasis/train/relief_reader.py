@@ -26,6 +26,7 @@ from ..errors import InputError
 from ..model.relief_reader import (VECTOR_CHANNELS, ReliefReader, ReliefReaderConfig, from_normal_unit, load_reader,
                                    read_relief, reader_inputs, save_reader)
 from ..evaluation.metrics import above_band
+from ..model.symmetry import Symmetry
 
 #: First seed of the validation materials: the detail benchmark's calibration set (``benchmarks/
 #: detail.py --first-seed``), not its held-out figures' seeds.
@@ -127,37 +128,29 @@ def photographed(seed: int, config: ReliefTrainingConfig) -> PoolMaterial:
     return PoolMaterial(inputs[0].half(), target[0].half(), maps[0].half(), float(fov))
 
 
+def flips_symmetry(flips: tuple[bool, bool, bool]) -> Symmetry:
+    """The symmetry (``model.symmetry.Symmetry``) that mirrors the columns, then the rows, then
+    transposes, as ``flips`` says. A mirror of the columns then a transposition is a transposition
+    then a mirror of the rows (and rows then a transposition, one then columns)."""
+    columns, rows, transpose = flips
+    return Symmetry(transpose, rows if transpose else columns, columns if transpose else rows)
+
+
 def mirror(image: torch.Tensor, vectors: tuple[tuple[int, int], ...], flips: tuple[bool, bool, bool]) -> torch.Tensor:
     """``image`` (B, C, H, W) mirrored: its columns, its rows, then transposed, as ``flips`` says,
-    the x and y channels of each vector in ``vectors`` (those within C) turned along (pixel rows run
-    down, y up: a transposition maps (x, y) to (-y, -x))."""
-    pairs = [(x, y) for x, y in vectors if y < image.shape[1]]
-    image = image.clone()
-    if flips[0]:
-        image = image.flip(-1)
-        for x, _ in pairs:
-            image[:, x] = -image[:, x]
-    if flips[1]:
-        image = image.flip(-2)
-        for _, y in pairs:
-            image[:, y] = -image[:, y]
-    if flips[2]:
-        image = image.transpose(-1, -2).clone()
-        for x, y in pairs:
-            image[:, [x, y]] = -image[:, [y, x]]
+    the x and y channels of each vector in ``vectors`` (adjacent channels; those within C) turned
+    along (``flips_symmetry``); a new tensor."""
+    symmetry = flips_symmetry(flips)
+    image = symmetry.image(image).clone()
+    for x, y in vectors:
+        if y < image.shape[1]:
+            image[:, x:y + 1] = symmetry.vectors(image[:, x:y + 1])
     return image
 
 
 def mirror_points(points: torch.Tensor, flips: tuple[bool, bool, bool]) -> torch.Tensor:
     """Positions (..., 3) about the image's centre, mirrored as ``mirror`` mirrors an image."""
-    points = points.clone()
-    if flips[0]:
-        points[..., 0] = -points[..., 0]
-    if flips[1]:
-        points[..., 1] = -points[..., 1]
-    if flips[2]:
-        points[..., [0, 1]] = -points[..., [1, 0]]
-    return points
+    return flips_symmetry(flips).vectors(points, dim=-1)
 
 
 def mirrored(inputs: torch.Tensor, target: torch.Tensor, flips: tuple[bool, bool, bool]):
