@@ -94,8 +94,9 @@ class PoolMaterial:
     """(READER_CHANNELS, S, S) the reader's inputs of its photo."""
     target: torch.Tensor
     """(2, S, S) the true normals' x and y above the band."""
-    maps: torch.Tensor
-    """(10, S, S) the true maps."""
+    maps: torch.Tensor | None
+    """(10, S, S) the true maps, for the re-rendering loss; None without it (``render_weight`` 0:
+    20 MB a material at 1024 px)."""
     fov: float
     """The photo's field of view [deg]."""
 
@@ -125,7 +126,8 @@ def photographed(seed: int, config: ReliefTrainingConfig) -> PoolMaterial:
     inputs = reader_inputs(photo, light, (config.band, config.band), fov, synthesis.convention,
                            unit_inputs=config.init_from_unit)
     target = above_band(maps[:, 0:2], config.band)
-    return PoolMaterial(inputs[0].half(), target[0].half(), maps[0].half(), float(fov))
+    return PoolMaterial(inputs[0].half(), target[0].half(), maps[0].half() if config.render_weight else None,
+                        float(fov))
 
 
 def flips_symmetry(flips: tuple[bool, bool, bool]) -> Symmetry:
