@@ -41,16 +41,21 @@ def scene_geometry(generator: torch.Generator, config: SynthesisConfig) -> torch
     """(9, 3) co-located camera and flash positions [patch half-widths]: a hand-held first photo,
     then eight from around it."""
     fov = sample_fov(generator, config)
-    height = constants.camera_height(fov)
     first = geometry.light_positions(sample_offsets(1, generator, fov, config.max_offset_deg,
                                                     config.offset_sigma_divisor), fov)
-    count = PHOTOS_PER_SCENE - 1
-    # Around the sample: angles uniform over the disc of the hand-held limit, heights varied.
-    radius = torch.sqrt(torch.rand(count, generator=generator)) * math.tan(math.radians(config.max_offset_deg))
+    return torch.cat([first, flashes_around(PHOTOS_PER_SCENE - 1, fov, generator, config.max_offset_deg)])
+
+
+def flashes_around(count: int, fov: float, generator: torch.Generator,
+                   max_offset_deg: float = constants.MAX_OFFSET_DEG) -> torch.Tensor:
+    """(count, 3) co-located camera and flash positions around the sample [patch half-widths], as a
+    calibrated scene's other photos are taken: directions uniform over the disc of the hand-held
+    limit ``max_offset_deg``, heights within -8 / +12 % of the camera's at ``fov``."""
+    height = constants.camera_height(fov)
+    radius = torch.sqrt(torch.rand(count, generator=generator)) * math.tan(math.radians(max_offset_deg))
     azimuth = torch.rand(count, generator=generator) * 2 * math.pi
     heights = height * (0.92 + 0.2 * torch.rand(count, generator=generator))
-    others = torch.stack([heights * radius * torch.cos(azimuth), heights * radius * torch.sin(azimuth), heights], -1)
-    return torch.cat([first, others])
+    return torch.stack([heights * radius * torch.cos(azimuth), heights * radius * torch.sin(azimuth), heights], -1)
 
 
 def photograph_scene(maps: torch.Tensor, positions: torch.Tensor, generator: torch.Generator,

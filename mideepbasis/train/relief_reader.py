@@ -25,6 +25,7 @@ from .. import constants, geometry
 from ..errors import InputError
 from ..model.relief_reader import (VECTOR_CHANNELS, ReliefReader, ReliefReaderConfig, from_normal_unit, load_reader,
                                    read_relief, reader_inputs, save_reader)
+from ..data.scenes import flashes_around
 from ..evaluation.metrics import above_band
 from ..model.symmetry import Symmetry
 
@@ -158,20 +159,6 @@ def mirror_points(points: torch.Tensor, flips: tuple[bool, bool, bool]) -> torch
 def mirrored(inputs: torch.Tensor, target: torch.Tensor, flips: tuple[bool, bool, bool]):
     """The crop's inputs and target (B, C, H, W) mirrored alike (``mirror``)."""
     return mirror(inputs, VECTOR_CHANNELS, flips), mirror(target, ((0, 1),), flips)
-
-
-def around_flashes(count: int, fov: float, generator: random.Random) -> torch.Tensor:
-    """(count, 3) flash positions around the photo's [patch half-widths], as ``data.scenes`` takes a
-    calibrated scene's other photos: directions uniform over the disc of the hand-held limit,
-    heights within -8 / +12 % of the camera's."""
-    height = constants.camera_height(fov)
-    limit = math.tan(math.radians(constants.MAX_OFFSET_DEG))
-    flashes = []
-    for _ in range(count):
-        radius, azimuth = math.sqrt(generator.random()) * limit, 2 * math.pi * generator.random()
-        level = height * (0.92 + 0.2 * generator.random())
-        flashes.append([level * radius * math.cos(azimuth), level * radius * math.sin(azimuth), level])
-    return torch.tensor(flashes)
 
 
 def framed_flashes(flashes: torch.Tensor, top: int, left: int, crop: int, size: int) -> torch.Tensor:
@@ -324,6 +311,7 @@ def train_reader(config: ReliefTrainingConfig, resume: bool = False, progress: b
         next_material = config.pool
     items = validation_set(config) if config.validate_every else []
     crops = random.Random(config.stream_seed * 1_000_003 + step)
+    flash_draws = torch.Generator().manual_seed(config.stream_seed * 1_000_003 + step)
     started = time.monotonic()
     running = None
 
@@ -355,7 +343,7 @@ def train_reader(config: ReliefTrainingConfig, resume: bool = False, progress: b
             targets.append(crop_target)
             if config.render_weight:
                 maps.append(mirror(material.maps[window][None].float(), ((0, 1),), flips))
-                flashes = framed_flashes(around_flashes(config.render_lights, material.fov, crops),
+                flashes = framed_flashes(flashes_around(config.render_lights, material.fov, flash_draws),
                                          top, left, config.crop, config.size)
                 lights.append(mirror_points(flashes, flips)[None])
                 intensities.append(math.pi * constants.camera_height(material.fov) ** 2)
