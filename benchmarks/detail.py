@@ -53,6 +53,9 @@ thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_se
 its entries end in ``_reader`` after those.
 ``--denoise`` captures with the photo's fine contrast denoised (``CaptureConfig.denoise_detail``):
 its entries end in ``_denoised``.
+``--colour-test`` / ``--no-colour-test`` capture with or without the contrast a change of hue explains
+left out of the normals' detail (``CaptureConfig.colour_test``): other than capture's default, entries
+end in ``_colour_test`` or ``_no_colour_test``.
 ``--no-keep-lobe-peak`` captures with the roughness as refined under the normals' detail
 (``CaptureConfig.keep_lobe_peak`` False): its entries end in ``_lobe_unkept``.
 ``--swap-reflectance`` without ``--visibility`` captures the relief materials so photographed:
@@ -578,6 +581,10 @@ def main() -> None:
     parser.add_argument("--denoise", action="store_true",
                         help="capture with the photo's fine contrast denoised (CaptureConfig.denoise_detail); "
                              "entries end in _denoised")
+    parser.add_argument("--colour-test", action=argparse.BooleanOptionalAction, default=None,
+                        help="capture with (or without) the contrast a change of hue explains left out of the "
+                             "normals' detail (CaptureConfig.colour_test; default: capture's); other than capture's "
+                             "default, entries end in _colour_test or _no_colour_test")
     parser.add_argument("--no-keep-lobe-peak", action="store_true",
                         help="capture with the roughness as refined under the normals' detail "
                              "(CaptureConfig.keep_lobe_peak False); entries end in _lobe_unkept")
@@ -600,6 +607,8 @@ def main() -> None:
                              fine_relief_strength=args.fine_relief_strength, relief_reader=args.relief_reader,
                              denoise_detail=args.denoise,
                              keep_lobe_peak=not args.no_keep_lobe_peak)
+        if args.colour_test is not None:
+            base = replace(base, colour_test=args.colour_test)
     except ValueError as error:
         parser.error(str(error))
     if args.registration is not None:
@@ -636,6 +645,9 @@ def main() -> None:
     command_suffix += f" --relief-reader {args.relief_reader}" if args.relief_reader else ""
     key_suffix += "_denoised" if args.denoise else ""
     command_suffix += " --denoise" if args.denoise else ""
+    if base.colour_test != CaptureConfig().colour_test:
+        key_suffix += "_colour_test" if base.colour_test else "_no_colour_test"
+        command_suffix += " --colour-test" if base.colour_test else " --no-colour-test"
     key_suffix += "_lobe_unkept" if args.no_keep_lobe_peak else ""
     command_suffix += " --no-keep-lobe-peak" if args.no_keep_lobe_peak else ""
     if not args.visibility:
@@ -728,7 +740,8 @@ def main() -> None:
               "refine_steps": base.refine.steps, "photo_jitter": args.photo_jitter, "jitter_seed": args.jitter_seed,
               "first_seed": args.first_seed, "fine_relief": args.fine_relief,
               "fine_relief_strength": args.fine_relief_strength, "relief_reader": args.relief_reader,
-              "denoise_detail": args.denoise, "keep_lobe_peak": not args.no_keep_lobe_peak,
+              "denoise_detail": args.denoise, "colour_test": base.colour_test,
+              "keep_lobe_peak": not args.no_keep_lobe_peak,
               "swap_reflectance": args.swap_reflectance, "groups": groups, "per_material": records}
     if args.photo_jitter > 0:
         write_section(args.output, f"detail_photo_jitter_{args.jitter_seed}{key_suffix}",

@@ -250,12 +250,15 @@ def write_report_sheet(folder: Path, sheet: ReportSheet, environment: np.ndarray
 def detail_summary(capture: dict) -> str | None:
     """What the maps hold above the network's resolution, in words, from a capture's provenance
     (``capture``: ``network_size``, ``detail_added``, ``relief_test_read``, ``normal_detail``,
-    ``fine_relief``, ``fine_relief_strength``, ``detail_denoised``); None for a provenance without them."""
+    ``fine_relief``, ``fine_relief_strength``, ``colour_tested``, ``detail_denoised``); None for a
+    provenance without them."""
     if "network_size" not in capture:
         return None
     if not capture.get("detail_added"):
         return f"none: the maps hold the network's {max(capture['network_size'])} px answer"
     summary = _added_detail_summary(capture)
+    if capture.get("colour_tested") and float(capture.get("normal_detail", 1.0)) > 0.005:
+        summary += "; the normals' detail left out the contrast a change of hue explains (--colour-test)"
     if capture.get("detail_denoised"):
         summary += "; the photo's noise was taken out of it first (--denoise-detail)"
     return summary

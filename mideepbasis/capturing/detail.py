@@ -23,6 +23,11 @@ roughness) the gain is about zero and nothing is added: relief comes only where 
 the photo's shading as relief. The network's answer below its resolution is kept: what is added
 is the photo's band above it. Normals are renormalised, the other maps clipped to [0, 1].
 
+With ``add_detail``'s ``colour_test`` (``CaptureConfig.colour_test``) the normals follow the photo's
+luminance contrast less the part that a change of hue explains (``shading_contrast``): shading
+changes a pixel's chroma only along its own colour's, and the edges of a printed or inlaid colour
+texture would otherwise tilt the normals.
+
 The network can read an albedo's fine texture as relief all the same. So the normals' gains are
 scaled by how much of the photo's fine contrast is shading at all (``relief_share``, a test that
 needs no network: shading's gradients turn with the direction to the flash, an albedo's do not;
@@ -127,6 +132,20 @@ NOISE_STRIDE = 2
 #: About the most patches ``photo_noise`` measures: a larger photo's are spaced further apart.
 NOISE_SAMPLES = 1 << 16
 
+
+#: Radius of the windows ``shading_contrast`` fits the luminance's slope on the hue's change in
+#: [working pixels].
+HUE_RADIUS = 3
+
+#: Regularisation of that slope [contrast^2]: a hue change of about a percent or less (noise, JPEG)
+#: takes little out.
+HUE_EPS = 1e-4
+
+#: Saturation of a pixel's colour [chroma over luminance] below which ``shading_contrast`` counts it
+#: as grey: there shading changes no hue, and both of the chroma's directions are the albedo's. It is
+#: kept far below a metal's tint (silver's is about 0.04): shading changes a tinted pixel's chroma
+#: along its tint, and a larger one would leave part of that in the albedo's directions.
+GREY_CHROMA = 2e-3
 
 #: ``relief_share`` at and below which the photo's fine contrast reads as albedo alone, and at
 #: and above which as relief enough for the normals' whole detail (``relief_gain``). On procedural
@@ -418,6 +437,57 @@ def denoise_contrast(contrast: torch.Tensor, noise: torch.Tensor, radius: int = 
     return (coarser + (variance - share).clamp(min=0.0) / variance.clamp(min=share) * finest) * deviation
 
 
+#: Two orthonormal directions across grey in RGB: the chroma's axes.
+CHROMA_AXES = ((2.0**-0.5, -(2.0**-0.5), 0.0), (6.0**-0.5, 6.0**-0.5, -2.0 * 6.0**-0.5))
+
+
+def shading_contrast(contrast: torch.Tensor, smooth: torch.Tensor, radius: int = HUE_RADIUS,
+                     eps: float = HUE_EPS) -> torch.Tensor:
+    """The photo's fine luminance contrast less the part a change of hue explains: what shading
+    can have made.
+
+    Shading changes a pixel's light by the diffuse's colour (its diffuse shading) and by the
+    specular's (a dielectric's is grey; a metal has next to no diffuse), so it moves the pixel's
+    chroma only along the chroma of its smooth colour, which is a mix of the two. A change of the
+    chroma across that, a change of hue, is the albedo's: on a printed or inlaid colour texture its
+    edges are the strongest of the photo's fine contrast, and a relief read from them tilts the
+    normals where nothing is tilted. In windows of ``radius``, the luminance contrast's
+    least-squares slopes on the two chroma components of each pixel's change, less their part along
+    its smooth colour's chroma, are fitted (a guided filter's gains, regularised by ``eps``, then
+    averaged over the window), and that part is taken out. A change of brightness or saturation
+    within one hue is the albedo's as well; that one the relief test weighs (``relief_share``).
+
+    Args:
+        contrast: (B, 4, h, w) the guides' contrast ``(I - L(I)) / L(I)`` (red, green, blue,
+            luminance; ``_guides``); smooth: (B, 4, h, w) their smooth level ``L(I)`` [linear].
+
+    Returns:
+        (B, 1, h, w) the luminance's contrast, the part a change of hue explains taken out.
+    """
+    luminance = contrast[:, 3:4]
+    level = smooth[:, 3:4].clamp(min=DARKEST)
+    axes = torch.tensor(CHROMA_AXES, dtype=contrast.dtype, device=contrast.device)
+    # The change and the smooth colour, each over the smooth level: their chroma in luminance units.
+    change = torch.einsum("kc,bchw->bkhw", axes, contrast[:, :3] * smooth[:, :3]) / level
+    tint = torch.einsum("kc,bchw->bkhw", axes, smooth[:, :3]) / level
+    along = (change * tint).sum(dim=1, keepdim=True) / ((tint * tint).sum(dim=1, keepdim=True) + GREY_CHROMA**2)
+    hue = change - along * tint
+    first, second = hue[:, 0:1], hue[:, 1:2]
+    # The windows' means of the regressors, the luminance and their products, in one pass.
+    means = _box(torch.cat([first, second, luminance, first * first, second * second, first * second,
+                            first * luminance, second * luminance], dim=1), radius)
+    mean_first, mean_second, mean_luminance = means[:, 0:1], means[:, 1:2], means[:, 2:3]
+    var_first = means[:, 3:4] - mean_first**2 + eps
+    var_second = means[:, 4:5] - mean_second**2 + eps
+    covariance = means[:, 5:6] - mean_first * mean_second
+    with_first = means[:, 6:7] - mean_first * mean_luminance
+    with_second = means[:, 7:8] - mean_second * mean_luminance
+    determinant = (var_first * var_second - covariance**2).clamp(min=1e-20)
+    slopes = _box(torch.cat([var_second * with_first - covariance * with_second,
+                             var_first * with_second - covariance * with_first], dim=1) / determinant, radius)
+    return luminance - slopes[:, 0:1] * first - slopes[:, 1:2] * second
+
+
 def _guides(photo: torch.Tensor) -> torch.Tensor:
     """(B, 3, H, W) -> (B, 4, H, W): red, green, blue and luminance."""
     return torch.cat([photo, photo.mean(dim=1, keepdim=True)], dim=1)
@@ -466,7 +536,7 @@ def detail_gains(low_maps: torch.Tensor, contrast: torch.Tensor, window: int = W
 def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
                normal_gain: float = 1.0, albedo_share: float = 0.0,
                fine_slope: torch.Tensor | None = None, denoise: bool = False, keep_lobe_peak: bool = False,
-               slope_scale: float = 1.0) -> torch.Tensor:
+               slope_scale: float = 1.0, colour_test: bool = False) -> torch.Tensor:
     """``maps`` with the photo's detail above the resolution of ``low_maps`` (module docstring).
 
     Args:
@@ -487,6 +557,8 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             pixel's mean specular peak stays as it was (``lobe_peak_factors``).
         slope_scale: the factor the normals' slopes are rendered at (``CaptureConfig.normal_strength``,
             applied after): the added tilts are measured at it.
+        colour_test: the normals follow the photo's contrast less the part a change of hue explains
+            (``shading_contrast``); False: its whole luminance contrast.
 
     Returns:
         (B, 10, H, W).
@@ -521,7 +593,8 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             # guides are: it follows their level.
             relative = noise_at(photo_noise(photo, guide_rows, rows), low_guides) / low_guides.clamp(min=DARKEST) ** 2
             noise_rows = _rows_at(relative, height, width)
-        halo = DENOISE_HALO if denoise else 0
+        # The windows of the denoising and of the hue's fit, one after the other, reach that far.
+        halo = (DENOISE_HALO if denoise else 0) + (2 * HUE_RADIUS if colour_test else 0)
         for start in range(0, height, rows):
             stop = min(height, start + rows)
             # Rows around the band too: the denoising's windows reach into them.
@@ -530,8 +603,10 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             contrast = (_guides(photo[..., first:last, :].float()) - smooth) / smooth.clamp(min=DARKEST)
             if noise_rows is not None:
                 contrast = denoise_contrast(contrast, noise_rows(first, last))
-            contrast = contrast[..., start - first:stop - first, :]
-            added = gain_rows(start, stop) * contrast[:, list(GUIDE_OF_CHANNEL)]
+            guided = contrast[:, list(GUIDE_OF_CHANNEL)]
+            if colour_test:
+                guided[:, constants.NORMAL] = shading_contrast(contrast, smooth)
+            added = gain_rows(start, stop) * guided[..., start - first:stop - first, :]
             if slope_rows is not None:
                 added[:, 0:2] += slope_rows(start, stop)
             maps[..., start:stop, :] += added

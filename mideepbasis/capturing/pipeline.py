@@ -110,6 +110,16 @@ class CaptureConfig:
     fine as the pixels reads as noise too, and a noise-free photo's finest texture goes with it
     (benchmarks/README.md, detail: the photo's noise)."""
 
+    colour_test: bool = False
+    """From 4 times the network's resolution on, give the normals' detail the photo's fine
+    luminance contrast less the part a change of hue explains (``detail.shading_contrast``):
+    shading moves a pixel's chroma only along its own colour's, so the edges of a printed or inlaid
+    colour texture are the albedo's, not relief. False: the whole luminance contrast. Off by
+    default: card-blue's printed scales re-render a little better with it, but where relief and
+    colour change together (a tile's recessed, coloured grout) it takes the shading out with the
+    hue, and procedural relief and phone-like scenes re-render a little worse
+    (benchmarks/README.md, detail: the colour test)."""
+
     keep_lobe_peak: bool = True
     """From 4 times the network's resolution on, where the detail step gives the normals finer
     relief, narrow the refined roughness so that each network pixel's specular peak, averaged over
@@ -293,6 +303,10 @@ class Prediction:
     denoise_detail: bool = False
     """Whether the photo's fine contrast is denoised before it is added (``CaptureConfig.denoise_detail``)."""
 
+    colour_test: bool = False
+    """Whether the normals' detail leaves out the contrast a change of hue explains
+    (``CaptureConfig.colour_test``, where the relief test reads and the fine relief is not read)."""
+
     keep_lobe_peak: bool = False
     """Whether the roughness is narrowed under the normals' detail (``CaptureConfig.keep_lobe_peak``;
     set by ``Capturer.refine``: the refined lobe is)."""
@@ -311,7 +325,8 @@ class Prediction:
             maps = add_detail(maps.clone() if maps is self.output.maps else maps, self.detail_from, self.output.maps,
                               normal_gain=self.normal_detail, albedo_share=1.0 - self.normal_detail,
                               fine_slope=self.fine_slope, denoise=self.denoise_detail,
-                              keep_lobe_peak=self.keep_lobe_peak, slope_scale=self.normal_strength)
+                              keep_lobe_peak=self.keep_lobe_peak, slope_scale=self.normal_strength,
+                              colour_test=self.colour_test)
         finishing = self.grey_specular or self.normal_strength != 1.0 or self.specular_floor > 0.0
         if finishing and maps is self.output.maps:
             maps = maps.clone()  # the output's own maps stay as the network gave them
@@ -503,6 +518,7 @@ class Capturer:
                                extent=extent)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine, denoise_detail=self.config.denoise_detail,
+                       colour_test=wide and self.config.colour_test and fine is None,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
                        normal_strength=self.config.normal_strength, relief_test_read=tested,
                        normal_detail=normal_detail)
@@ -586,6 +602,8 @@ class Capturer:
                                                                                     and prediction.denoise_detail),
                                                                 "lobe_peak_kept": (prediction.detail_from is not None
                                                                                    and prediction.keep_lobe_peak),
+                                                                "colour_tested": (prediction.detail_from is not None
+                                                                                  and prediction.colour_test),
                                                                 "normal_detail": prediction.normal_detail}})
         return CaptureResult(material=material, photo=photo.pixels, offset=offset, fov=photo.fov,
                              fov_source=photo.fov_source, searched=config.light is None, search_history=history,

@@ -114,6 +114,10 @@ class EvaluationConfig:
     """Denoise the photo's fine contrast before the detail step adds it, as ``capture`` does
     (``CaptureConfig.denoise_detail``; None: capture's default)."""
 
+    colour_test: bool | None = None
+    """Leave out of the normals' detail the contrast a change of hue explains, as ``capture`` does
+    (``CaptureConfig.colour_test``; None: capture's default)."""
+
     keep_lobe_peak: bool | None = None
     """Narrow the roughness under the normals' detail so that the specular peak stays as fitted,
     as ``capture`` does (``CaptureConfig.keep_lobe_peak``; None: capture's default)."""
@@ -204,8 +208,8 @@ def shown_refinement(config: EvaluationConfig) -> RefineConfig:
 
 #: The fields an evaluation shares with ``CaptureConfig``, None in the evaluation for capture's default.
 SHARED_CAPTURE_FIELDS = ("symmetries", "relief_test", "fine_relief", "fine_relief_strength", "relief_reader",
-                         "denoise_detail", "keep_lobe_peak", "grey_specular", "specular_floor", "normal_strength",
-                         "lobe_variation")
+                         "denoise_detail", "colour_test", "keep_lobe_peak", "grey_specular", "specular_floor",
+                         "normal_strength", "lobe_variation")
 
 
 def capture_options(config: EvaluationConfig | None) -> dict:

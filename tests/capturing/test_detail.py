@@ -3,6 +3,7 @@ follows the photo, not to one that does not, the low band kept, bands of rows as
 
 from __future__ import annotations
 
+import itertools
 import re
 
 import pytest
@@ -20,7 +21,8 @@ from ..helpers import matte_egg_crate
 TOLERANCES = {"energy_ratio": (0.6, 1.3), "error_left": 0.6, "low_band": 2e-3, "flat_normal": 1e-3,
               "made_up_band_left": 0.85, "fine_relief_correlation": 0.4, "fine_slope_kept": 2e-3,
               "noise_variance": 0.2, "noise_left": 0.1, "noise_energy_left": 0.15, "noise_free_change": 2e-3,
-              "lobe_peak_mean": 5e-3, "lobe_peak_pixel": 0.05}
+              "lobe_peak_mean": 5e-3, "lobe_peak_pixel": 0.05, "shading_change": 1e-6, "hue_energy_left": 0.05,
+              "shading_correlation": 0.75, "hue_correlation": 0.25, "hue_relief_left": 0.1}
 
 SIZE, LOW = 256, 32
 
@@ -206,6 +208,97 @@ def test_bands_of_rows_give_the_whole_image_with_a_noisy_photo(monkeypatch):
     assert torch.allclose(detail.add_detail(maps.clone(), photo, low, denoise=True), whole, atol=1e-5)
 
 
+TEAL, GOLD = (0.05, 0.35, 0.40), (0.70, 0.50, 0.15)
+WHITE, BLACK, SILVER = (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), (0.97, 0.96, 0.91)
+
+
+def _fine_field(seed: int) -> torch.Tensor:
+    """(1, 1, SIZE, SIZE) smooth noise in [0, 1] with cells of 4 pixels: finer than the network's."""
+    generator = torch.Generator().manual_seed(seed)
+    cells = torch.rand(1, 1, SIZE // 4, SIZE // 4, generator=generator)
+    return F.interpolate(cells, size=(SIZE, SIZE), mode="bicubic", align_corners=False)
+
+
+def _coloured_photo(hue_texture: bool, relief: bool, specular: tuple[float, float, float] = WHITE,
+                    diffuse: tuple[float, float, float] | None = None) -> torch.Tensor:
+    """(1, 3, SIZE, SIZE) a flash photo of teal and gold scales (or one colour) with, where
+    ``relief``, a fine shading of the diffuse and of a ``specular``-coloured glint."""
+    mask = (_fine_field(1) > 0.5).float() if hue_texture else torch.zeros(1, 1, SIZE, SIZE)
+    albedo = (torch.tensor(TEAL).view(1, 3, 1, 1) * (1 - mask) + torch.tensor(GOLD).view(1, 3, 1, 1) * mask
+              if diffuse is None else torch.tensor(diffuse).view(1, 3, 1, 1).expand(1, 3, SIZE, SIZE))
+    shading = 1 + 0.3 * (_fine_field(2) - 0.5) if relief else torch.ones(1, 1, SIZE, SIZE)
+    glint = 0.05 * (1 + (_fine_field(3) - 0.5)) if relief else torch.full((1, 1, SIZE, SIZE), 0.05)
+    return _falloff_photo(albedo * shading + torch.tensor(specular).view(1, 3, 1, 1) * glint)
+
+
+def _contrast(photo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The guides' contrast above the network's band and their smooth level, as ``add_detail`` takes them."""
+    guides = torch.cat([photo, photo.mean(dim=1, keepdim=True)], dim=1)
+    smooth = upsample_bilinear(downsample(guides, LOW), SIZE, SIZE)
+    return (guides - smooth) / smooth, smooth
+
+
+def _correlation(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a * b).mean() / (a.square().mean() * b.square().mean()).sqrt())
+
+
+@pytest.mark.parametrize("specular, diffuse", [(WHITE, (0.5, 0.5, 0.5)), (WHITE, TEAL), (SILVER, BLACK),
+                                               (GOLD, BLACK)])
+def test_shading_contrast_keeps_the_contrast_shading_makes(specular, diffuse):
+    # A grey or a teal diffuse under a white glint, or a silver or gold metal: the chroma changes only
+    # along the pixel's own colour's.
+    contrast, smooth = _contrast(_coloured_photo(False, True, specular, diffuse))
+    kept = detail.shading_contrast(contrast, smooth)
+    change = (kept - contrast[:, 3:4]).square().mean() / contrast[:, 3:4].square().mean()
+    assert float(change) < TOLERANCES["shading_change"]
+
+
+def test_shading_contrast_takes_a_change_of_hue_out_and_keeps_the_shading_under_it():
+    contrast, smooth = _contrast(_coloured_photo(True, False))
+    kept = detail.shading_contrast(contrast, smooth)
+    assert float(kept.square().mean()) < TOLERANCES["hue_energy_left"] * float(contrast[:, 3:4].square().mean())
+    # Scales with shading: what is kept is the shading's, not the scales' edges.
+    both, both_smooth = _contrast(_coloured_photo(True, True))
+    kept = detail.shading_contrast(both, both_smooth)
+    shading_only = _contrast(_coloured_photo(False, True))[0][:, 3:4]
+    hue_only = contrast[:, 3:4]
+    assert _correlation(both[:, 3:4], hue_only) > _correlation(both[:, 3:4], shading_only)  # the edges dominate
+    assert _correlation(kept, shading_only) > TOLERANCES["shading_correlation"]
+    assert _correlation(kept, hue_only) < TOLERANCES["hue_correlation"]
+
+
+def _normals_following_the_photo(photo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The network's answer (at LOW px and upsampled) for ``photo``, its normals' x slope following
+    the photo's luminance contrast at LOW px: relief read from it."""
+    low = torch.zeros(1, 10, LOW, LOW)
+    low[:, constants.DIFFUSE] = downsample(photo, LOW)
+    low[:, 0:1] = 0.5 * detail.band_contrast(detail._guides(downsample(photo, LOW)))[:, 0:1]
+    low[:, 2] = 1.0
+    low[:, constants.ROUGHNESS], low[:, constants.SPECULAR] = 0.4, 0.04
+    return low, upsample_bilinear(low, SIZE, SIZE)
+
+
+def test_the_colour_test_gives_the_normals_no_relief_from_a_change_of_hue():
+    photo = _coloured_photo(True, False)
+    low, maps = _normals_following_the_photo(photo)
+    added = {test: high_band(detail.add_detail(maps.clone(), photo, low, colour_test=test)[:, 0:2])
+             for test in (False, True)}
+    assert float(added[True].square().mean()) < TOLERANCES["hue_relief_left"] * float(added[False].square().mean())
+    # The diffuse's detail is the same either way.
+    assert torch.equal(detail.add_detail(maps.clone(), photo, low, colour_test=True)[:, constants.DIFFUSE],
+                       detail.add_detail(maps.clone(), photo, low)[:, constants.DIFFUSE])
+
+
+@pytest.mark.parametrize("denoise", [False, True])
+def test_bands_of_rows_give_the_whole_image_with_the_colour_test(monkeypatch, denoise):
+    photo = _noisy(_coloured_photo(True, True), 1e-4, 1e-3) if denoise else _coloured_photo(True, True)
+    low, maps = _normals_following_the_photo(photo)
+    whole = detail.add_detail(maps.clone(), photo, low, denoise=denoise, colour_test=True)
+    monkeypatch.setattr(detail, "BAND_PIXELS", SIZE * 24)  # bands of 24 rows
+    assert torch.allclose(detail.add_detail(maps.clone(), photo, low, denoise=denoise, colour_test=True), whole,
+                          atol=1e-5)
+
+
 @pytest.mark.parametrize("size", [LOW, LOW // 2])
 def test_nothing_is_added_at_or_below_the_network_resolution(size):
     albedo, photo = textured_scene(3)
@@ -382,6 +475,24 @@ def test_capture_denoises_the_detail_unless_told_not_to(tiny_checkpoint):
     assert fine_energy[True] < fine_energy[False]
 
 
+def test_capture_leaves_a_change_of_hue_out_of_the_normals_only_where_the_relief_test_reads(tiny_checkpoint):
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
+
+    photo = _coloured_photo(True, True)
+    results = {}
+    for size, test in itertools.product((SIZE, 2 * LOW), (True, False)):
+        config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW, symmetries=1,
+                               refine=RefineConfig(steps=0), relief_test=False, colour_test=test)
+        material = Capturer(tiny_checkpoint, config).capture(downsample(photo, size)[0]).material
+        results[size, test] = material.provenance["capture"]["colour_tested"], material.to_tensor()
+    assert results[SIZE, True][0] is True and results[SIZE, False][0] is False
+    assert not torch.equal(results[SIZE, True][1][0:2], results[SIZE, False][1][0:2])
+    assert torch.equal(results[SIZE, True][1][3:], results[SIZE, False][1][3:])  # the normals' detail alone
+    # Below 4 times the network's resolution the relief test does not read, nor does this one.
+    assert results[2 * LOW, True][0] is False
+    assert torch.equal(results[2 * LOW, True][1], results[2 * LOW, False][1])
+
+
 def test_the_report_says_what_the_detail_step_did():
     from mideepbasis.reporting import detail_summary
 
@@ -405,6 +516,10 @@ def test_the_report_says_what_the_detail_step_did():
         {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 2.5})
     assert "--fine-relief-strength" not in detail_summary(
         {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 1.0})
+    assert "a change of hue explains (--colour-test)" in detail_summary({**base, "normal_detail": 0.34,
+                                                                          "colour_tested": True})
+    assert "hue" not in detail_summary({**base, "normal_detail": 0.0, "colour_tested": True})
+    assert "hue" not in detail_summary({**base, "normal_detail": 0.34, "colour_tested": False})
 
 
 def _matte_relief(family: str, seed: int, size: int) -> torch.Tensor:
