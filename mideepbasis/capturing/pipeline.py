@@ -115,10 +115,10 @@ class CaptureConfig:
     luminance contrast less the part a change of hue explains (``detail.shading_contrast``):
     shading moves a pixel's chroma only along its own colour's, so the edges of a printed or inlaid
     colour texture are the albedo's, not relief. False: the whole luminance contrast. Off by
-    default: card-blue's printed scales re-render a little better with it, but where relief and
-    colour change together (a tile's recessed, coloured grout) it takes the shading out with the
-    hue, and procedural relief and phone-like scenes re-render a little worse
-    (benchmarks/README.md, detail: the colour test)."""
+    default: card-blue re-renders a little better with it from its photo 00 and the same from each
+    photo in turn, but where relief and colour change together (a tile's recessed, coloured grout)
+    it takes the shading out with the hue, and procedural relief and phone-like scenes re-render a
+    little worse (benchmarks/README.md, detail: the colour test)."""
 
     keep_lobe_peak: bool = True
     """From 4 times the network's resolution on, where the detail step gives the normals finer
