@@ -42,7 +42,9 @@ made up from the albedo: that share of their band, as the fitted gains explain i
 network's normal unit, which reads relief from a flash photo's shading, run once more on the photo
 itself (at up to ``FINE_RELIEF_SIZE``), its slope above the network's band weighted by each
 pixel's diffuse share (glints are the specular's, not relief) and put in place of the photo's
-contrast times the normals' gains, scaled by the relief test's gain all the same.
+contrast times the normals' gains, scaled by the relief test's gain all the same. A metal has no
+diffuse shading for the unit to read: by each network pixel's metallic share (as the exports
+split the maps) the normals keep the gains' detail, the reading of the specular's shading.
 
 Fine normals, read either way, spread the specular lobe, and the refinement fitted the lobe to the
 photo without them: with ``add_detail``'s ``keep_lobe_peak`` (``CaptureConfig.keep_lobe_peak``)
@@ -63,6 +65,7 @@ import torch.nn.functional as F
 
 from .. import constants
 from ..geometry import pixel_points, unit_vectors
+from ..material import metallic_share
 from ..resampling import downsample, exact_in_bands, gaussian_blur, upsample_bilinear, upsampled_rows
 
 if TYPE_CHECKING:
@@ -286,7 +289,8 @@ FINE_RELIEF_SIZE = 1024
 #: 0.1609); the calibration set's relief normal RMSE 0.0683 / 0.0690 / 0.0699 (``benchmarks/
 #: detail.py --first-seed 500001000 --seed 1``); the benchmark's crumpled foil 0.0139 / 0.0136 /
 #: 0.0136 (0.0135), its brushed silver, a metal with no diffuse share, 0.0421 / 0.0458 / 0.0492
-#: (0.0452).
+#: (0.0452) when the unit's reading was all its normals got (now they keep the gains' detail by
+#: their metallic share, ``add_detail``: 0.0426 at power 1).
 FINE_RELIEF_MATTE_POWER = 1.0
 
 
@@ -533,6 +537,13 @@ def detail_gains(low_maps: torch.Tensor, contrast: torch.Tensor, window: int = W
     return gains
 
 
+def metallic_shares(maps: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) the metallic share of maps (B, 10, H, W), as the exports split them
+    (``material.metallic_share`` at ``constants.EXPORT_METAL_F0``)."""
+    return torch.stack([metallic_share(m[constants.DIFFUSE].float(), m[constants.SPECULAR].float(),
+                                       constants.EXPORT_METAL_F0) for m in maps])
+
+
 def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
                normal_gain: float = 1.0, albedo_share: float = 0.0,
                fine_slope: torch.Tensor | None = None, denoise: bool = False, keep_lobe_peak: bool = False,
@@ -550,7 +561,9 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             that follows the photo's contrast (relief made up from the albedo); capture passes
             ``1 - normal_gain``.
         fine_slope: (B, 2, H', W') ``fine_relief``: the normals' detail, times ``normal_gain``, in
-            place of the photo's contrast times their gains; None: those.
+            place of the photo's contrast times their gains but for the metallic share of each
+            network pixel (``metallic_shares``): a metal has no diffuse to read relief from, and
+            keeps that share of the gains' detail; None: the gains' detail everywhere.
         denoise: the photo's fine contrast denoised first (``denoise_contrast``, the noise measured
             from the photo by ``photo_noise``); False: as it is.
         keep_lobe_peak: narrow the roughness where the normals get detail, so that each network
@@ -574,7 +587,9 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
         # Where the contrast reads as albedo, what of the network's normals follows it is relief made
         # up from the albedo: it goes with what the detail holds below the network's resolution.
         made_up = albedo_share * gains[:, constants.NORMAL] * low_contrast[:, constants.NORMAL]
-        gains[:, constants.NORMAL] *= 0.0 if fine_slope is not None else normal_gain
+        # The fine slope reads the diffuse's shading, weighted by its share; a metal has none. There
+        # the photo's contrast times the normals' gains, which reads the specular's shading, stays.
+        gains[:, constants.NORMAL] *= normal_gain if fine_slope is None else normal_gain * metallic_shares(low_maps)
         factor = height // low_size[0]
         banded = (exact_in_bands(low_size[0], height) and low_size[1] * factor == width)
         rows = max(factor, BAND_PIXELS // width // factor * factor) if banded else height

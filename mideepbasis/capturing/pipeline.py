@@ -81,7 +81,8 @@ class CaptureConfig:
     """From 4 times the network's resolution on, read the normals' detail above it with the
     network's normal unit run on the photo itself (``detail.fine_relief``, at up to 1024 px,
     weighted by each pixel's diffuse share) instead of the photo's contrast times the normals'
-    gains. On held-out procedural relief at 1024 px the normal and re-rendering errors fall
+    gains, which a metal keeps by its metallic share (it has no diffuse shading to read). On
+    held-out procedural relief at 1024 px the normal and re-rendering errors fall
     (benchmarks/README.md, detail); off by default because a flat grained wood that the relief
     test reads as partly relief gets its grain as relief, and it takes about 2 s more on two
     cores."""
@@ -298,7 +299,8 @@ class Prediction:
 
     fine_slope: torch.Tensor | None = None
     """(B, 2, H', W') the normals' detail read by the normal unit (``detail.fine_relief``,
-    ``CaptureConfig.fine_relief``); None: the photo's contrast times their gains."""
+    ``CaptureConfig.fine_relief``), in place of the photo's contrast times their gains but for
+    the maps' metallic share (``detail.add_detail``); None: the photo's contrast times their gains."""
 
     denoise_detail: bool = False
     """Whether the photo's fine contrast is denoised before it is added (``CaptureConfig.denoise_detail``)."""

@@ -587,6 +587,39 @@ def test_a_fine_slope_takes_the_normals_gains_place_scaled_by_the_relief_gain():
     assert torch.equal(with_slope[:, constants.REFLECTANCE], without[:, constants.REFLECTANCE])
 
 
+def test_with_a_fine_slope_a_metal_keeps_the_normals_gains_detail_and_a_dielectric_none():
+    """The fine slope reads the diffuse's shading and a metal has none: there the normals keep the
+    photo's contrast times their gains, as without a fine slope; a dielectric gets the slope alone."""
+    albedo, photo = textured_scene(4)
+    low, _ = upsampled_answer(albedo)
+    # The network's normals follow the photo's contrast at its resolution: the gains read relief.
+    level = downsample(photo, LOW).mean(dim=1, keepdim=True)
+    smooth = gaussian_blur(level, detail.LOW_SIGMA, padding="replicate")
+    low[:, 0:1] = 0.5 * (level - smooth) / smooth
+    low[:, constants.NORMAL] = low[:, constants.NORMAL] / low[:, constants.NORMAL].norm(dim=1, keepdim=True)
+    # The left half a metal (no diffuse, a bright specular: metallic share 1), the right half a
+    # dielectric (specular 0.04: metallic share 0).
+    low[..., : LOW // 2][:, constants.DIFFUSE] = 0.0
+    low[..., : LOW // 2][:, constants.SPECULAR] = 0.9
+    maps = upsample_bilinear(low, SIZE, SIZE)
+    shares = detail.metallic_shares(low)[0, 0]
+    assert torch.allclose(shares[:, : LOW // 2], torch.ones(LOW, LOW // 2), atol=1e-6)
+    assert torch.equal(shares[:, LOW // 2:], torch.zeros(LOW, LOW // 2))
+
+    def added_tilts(fine_slope: torch.Tensor | None) -> torch.Tensor:
+        detailed = detail.add_detail(maps.clone(), photo, low, fine_slope=fine_slope)
+        return detailed[:, 0:2] / detailed[:, 2:3] - maps[:, 0:2] / maps[:, 2:3]
+
+    gains_detail = added_tilts(None)
+    with_slope = added_tilts(torch.zeros(1, 2, SIZE, SIZE))
+    margin = 2 * SIZE // LOW  # the gains are upsampled across the border between the halves
+    metal, dielectric = slice(margin, SIZE // 2 - margin), slice(SIZE // 2 + margin, SIZE - margin)
+    assert float(gains_detail[..., metal].square().mean().sqrt()) > 0.01  # the gains read relief here
+    assert float(gains_detail[..., dielectric].square().mean().sqrt()) > 0.01
+    assert torch.allclose(with_slope[..., metal], gains_detail[..., metal], atol=TOLERANCES["fine_slope_kept"])
+    assert float(with_slope[..., dielectric].abs().max()) < TOLERANCES["fine_slope_kept"]
+
+
 def test_capture_reads_the_fine_relief_when_asked_from_four_times_the_network_size_where_the_test_reads_relief(
         tmp_path):
     from dataclasses import replace
