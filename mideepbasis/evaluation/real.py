@@ -330,7 +330,8 @@ def scene_photos(scene: CalibratedScene, resolution: int | str) -> torch.Tensor:
 def evaluate_scene(capturer, scene: CalibratedScene, inputs: list[int], upsampled_from: int | None = None) -> dict:
     """Every row's scores on one scene, averaged over the input photos ``inputs`` (``upsampled_from``:
     ``materials_of_scene``):
-    {"rows": {row: {figure: value}}, "renders": {row: (N, 3, H, W) sRGB} of the first input,
+    {"rows": {row: {figure: value}}, "per_input": {row: [RMSE of each input, in the order of
+    ``inputs``]}, "inputs": inputs, "renders": {row: (N, 3, H, W) sRGB} of the first input,
     "photos": (N, 3, H, W) linear}."""
     from .metrics import map_rmse
 
@@ -356,7 +357,8 @@ def evaluate_scene(capturer, scene: CalibratedScene, inputs: list[int], upsample
             if index == inputs[0]:
                 renders[row] = scores.renders
     means = {row: {name: sum(values) / len(values) for name, values in figures.items()} for row, figures in rows.items()}
-    return {"rows": means, "renders": renders, "photos": photos}
+    per_input = {row: figures["rmse"] for row, figures in rows.items()}
+    return {"rows": means, "per_input": per_input, "inputs": list(inputs), "renders": renders, "photos": photos}
 
 
 def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
@@ -402,6 +404,7 @@ def run_real_evaluation(config, out: Path, progress: bool = True) -> dict:
     rows[PAPER_ROW] = {"rmse": PAPER_REAL_RMSE}
     summary = {"protocol": "real (calibrated scenes)", "data": str(config.data), "model": config.model or "shipped",
                "input_photo": config.input_photo, "scenes": {name: r["rows"] for name, r in results.items()},
+               "per_input": {name: {"inputs": r["inputs"], "rmse": r["per_input"]} for name, r in results.items()},
                "rows": rows, "n_scenes": len(results), "notes": notes,
                "working_resolution": capture_config.resolution,
                "compared_at": {name: int(r["photos"].shape[-1]) for name, r in results.items()},
@@ -426,6 +429,14 @@ def real_table(summary: dict) -> str:
         lines += ["", "RMSE per scene:", "", "| row | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
         for row in next(iter(summary["scenes"].values())):
             lines.append(f"| {row} | " + " | ".join(f"{summary['scenes'][n][row]['rmse']:.4f}" for n in names) + " |")
+    for name, per_input in summary.get("per_input", {}).items():
+        if len(per_input["inputs"]) < 2:
+            continue
+        photos = [f"{index:02d}" for index in per_input["inputs"]]
+        lines += ["", f"RMSE of {name} per input photo (the material captured from it, the others re-rendered):", "",
+                  "| row | " + " | ".join(photos) + " |", "|---" * (len(photos) + 1) + "|"]
+        for row, values in per_input["rmse"].items():
+            lines.append(f"| {row} | " + " | ".join(f"{value:.5f}" for value in values) + " |")
     return "\n".join(lines) + "\n"
 
 

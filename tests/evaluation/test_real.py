@@ -128,6 +128,29 @@ def test_the_command_runs_the_protocol_and_skips_a_bad_scene(tmp_path, capsys):
     assert (out / "sheets" / "good.png").is_file() and "| capture (default) |" in (out / "table.md").read_text()
 
 
+def test_every_input_photo_has_its_own_figure_beside_the_mean(tmp_path, capsys):
+    model = tiny_model(tmp_path)
+    data = tmp_path / "scenes"
+    write_scene(data / "good", known_material(64), positions_cm())
+    common = ["--data", str(data), "--model", str(model), "--symmetries", "1", "--refine-steps", "0",
+              "--resolution", "64"]
+    assert cli.main(["evaluate", *common, "-o", str(tmp_path / "all"), "--input-photo", "all"]) == 0
+    assert cli.main(["evaluate", *common, "-o", str(tmp_path / "third"), "--input-photo", "3"]) == 0
+    capsys.readouterr()
+    every = json.loads((tmp_path / "all" / "summary.json").read_text())
+    third = json.loads((tmp_path / "third" / "summary.json").read_text())
+    per_input = every["per_input"]["good"]
+    assert per_input["inputs"] == list(range(9))
+    captured = per_input["rmse"][real.CAPTURE_ROW]
+    # Each input's figure is the one a run from that photo alone gives; the mean is theirs.
+    assert captured[3] == pytest.approx(third["rows"][real.CAPTURE_ROW]["rmse"], abs=1e-6)
+    assert sum(captured) / 9 == pytest.approx(every["rows"][real.CAPTURE_ROW]["rmse"], abs=1e-9)
+    assert len(set(round(value, 6) for value in captured)) > 1
+    table = (tmp_path / "all" / "table.md").read_text()
+    assert "RMSE of good per input photo" in table and f"| {captured[3]:.5f} |" in table
+    assert "per input photo" not in (tmp_path / "third" / "table.md").read_text()
+
+
 def test_native_resolution_compares_each_scene_at_its_photos_own_size(tmp_path, capsys):
     model = tiny_model(tmp_path)
     data = tmp_path / "scenes"
