@@ -458,9 +458,10 @@ _PBR_BAND_ROWS = 256
 
 
 def _luminance(rgb: torch.Tensor) -> torch.Tensor:
-    """(1, H, W) luminance of (3, H, W) linear colours (``constants.LUMINANCE_WEIGHTS``), in their dtype."""
+    """(..., 1, H, W) luminance of (..., 3, H, W) linear colours (``constants.LUMINANCE_WEIGHTS``), in
+    their dtype."""
     weights = torch.tensor(constants.LUMINANCE_WEIGHTS, dtype=rgb.dtype, device=rgb.device).reshape(3, 1, 1)
-    return (weights * rgb).sum(0, keepdim=True)
+    return (weights * rgb).sum(-3, keepdim=True)
 
 
 def _metallic_of_luminances(lum_d: torch.Tensor, lum_s: torch.Tensor, dielectric_f0: float) -> torch.Tensor:
@@ -473,8 +474,8 @@ def _metallic_of_luminances(lum_d: torch.Tensor, lum_s: torch.Tensor, dielectric
 
 
 def metallic_share(diffuse: torch.Tensor, specular: torch.Tensor, dielectric_f0: float) -> torch.Tensor:
-    """The metallic (1, H, W) in [0, 1] of ``Material.to_pbr`` for diffuse and specular (3, H, W),
-    computed in their dtype: 0 where the specular's luminance is at most ``dielectric_f0``."""
+    """The metallic (..., 1, H, W) in [0, 1] of ``Material.to_pbr`` for diffuse and specular
+    (..., 3, H, W), computed in their dtype: 0 where the specular's luminance is at most ``dielectric_f0``."""
     return _metallic_of_luminances(_luminance(diffuse), _luminance(specular), dielectric_f0)
 
 

@@ -432,6 +432,20 @@ def test_pbr_hand_computed_and_dielectrics():
         Material.from_pbr(torch.rand(4, 4, 3), torch.zeros(1, 4, 4), torch.rand(1, 4, 4))
 
 
+def test_metallic_share_of_a_batch_is_each_materials_split():
+    from mideepbasis.material import metallic_share
+
+    g = torch.Generator().manual_seed(5)
+    base = 0.2 + 0.8 * torch.rand(2, 3, 8, 8, generator=g)
+    metallic = torch.stack([torch.ones(1, 8, 8), torch.rand(1, 8, 8, generator=g)])
+    split = [Material.from_pbr(b, m, torch.rand(1, 8, 8, generator=g), dielectric_f0=0.08) for b, m in zip(base, metallic)]
+    diffuse = torch.stack([material.diffuse for material in split])
+    specular = torch.stack([material.specular for material in split])
+    shares = metallic_share(diffuse, specular, 0.08)
+    assert shares.shape == (2, 1, 8, 8)
+    torch.testing.assert_close(shares, metallic, rtol=0, atol=1e-3)
+
+
 def test_grey_dielectric_specular_keeps_a_metals_colour_and_greys_a_dielectrics():
     from mideepbasis.material import grey_dielectric_specular
 

@@ -540,8 +540,8 @@ def detail_gains(low_maps: torch.Tensor, contrast: torch.Tensor, window: int = W
 def metallic_shares(maps: torch.Tensor) -> torch.Tensor:
     """(B, 1, H, W) the metallic share of maps (B, 10, H, W), as the exports split them
     (``material.metallic_share`` at ``constants.EXPORT_METAL_F0``)."""
-    return torch.stack([metallic_share(m[constants.DIFFUSE].float(), m[constants.SPECULAR].float(),
-                                       constants.EXPORT_METAL_F0) for m in maps])
+    return metallic_share(maps[:, constants.DIFFUSE].float(), maps[:, constants.SPECULAR].float(),
+                          constants.EXPORT_METAL_F0)
 
 
 def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
