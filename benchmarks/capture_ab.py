@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/capture_ab.py --no-refine-unclamped-moves [--repeats 8]
     .venv/bin/python benchmarks/capture_ab.py --b-model runs/OTHER.safetensors      # two models, the same options
-    .venv/bin/python benchmarks/capture_ab.py --resolution 1024 --fine-relief --a-resolution-too
+    .venv/bin/python benchmarks/capture_ab.py --resolution 1024 --no-fine-relief --a-resolution-too
 
 Captures the bundled example photo with capture's defaults (A) and with the capture options given
 (B; any of ``mideepbasis capture``'s, as ``CaptureConfig`` reads them, and ``--b-model``), A and B taken in turn after

@@ -46,10 +46,12 @@ refinement's spread on glossy materials rather than the resolution. Entry
 from it to calibrate the detail step's constants on (``detail.DIFFUSE_GAIN``, the relief test's
 thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_seeds_N`` too.
 ``--no-relief-test`` captures without the relief test: its entries end in ``_no_relief_test``.
-``--fine-relief`` captures with the normals' detail read by the network's normal unit
-(``CaptureConfig.fine_relief``): its entries end in ``_fine_relief``, and with
-``--fine-relief-strength S`` other than 1 (``CaptureConfig.fine_relief_strength``) in ``_fine_relief_S``.
-``--relief-reader FILE`` with it reads that relief with a relief reader (``CaptureConfig.relief_reader``):
+``--no-fine-relief`` captures with the normals' detail as the photo's contrast times their gains
+instead of the relief the network's normal unit reads (``CaptureConfig.fine_relief``, on by
+default): its entries end in ``_no_fine_relief``. ``--fine-relief-strength S`` other than capture's
+default (``CaptureConfig.fine_relief_strength``) ends them in ``_fine_relief_S``, or for the unit's
+own reading, S = 1, in ``_fine_relief``.
+``--relief-reader FILE`` reads that relief with a relief reader (``CaptureConfig.relief_reader``):
 its entries end in ``_reader`` after those.
 ``--denoise`` captures with the photo's fine contrast denoised (``CaptureConfig.denoise_detail``):
 its entries end in ``_denoised``.
@@ -569,14 +571,16 @@ def main() -> None:
     parser.add_argument("--no-relief-test", action="store_true",
                         help="capture with the normals' detail not scaled by the photo's relief share "
                              "(CaptureConfig.relief_test)")
-    parser.add_argument("--fine-relief", action="store_true",
-                        help="capture with the normals' detail read by the network's normal unit on the photo "
-                             "(CaptureConfig.fine_relief); entries end in _fine_relief")
-    parser.add_argument("--fine-relief-strength", type=float, default=1.0, metavar="S",
-                        help="with --fine-relief, the factor of the relief it reads "
-                             "(CaptureConfig.fine_relief_strength); other than 1, entries end in _fine_relief_S")
+    parser.add_argument("--fine-relief", action=argparse.BooleanOptionalAction, default=CaptureConfig.fine_relief,
+                        help="capture with the normals' detail read by the network's normal unit on the photo, or "
+                             "(--no-fine-relief) the photo's contrast times their gains (CaptureConfig.fine_relief; "
+                             "default: capture's); without it, entries end in _no_fine_relief")
+    parser.add_argument("--fine-relief-strength", type=float, default=CaptureConfig.fine_relief_strength,
+                        metavar="S", help="the factor of the relief the fine relief reads "
+                                          "(CaptureConfig.fine_relief_strength; default: capture's); other than that, "
+                                          "entries end in _fine_relief_S (1: _fine_relief)")
     parser.add_argument("--relief-reader", default=None, metavar="FILE",
-                        help="with --fine-relief, a relief reader's weights that read the normals' detail "
+                        help="a relief reader's weights that read the fine relief "
                              "(CaptureConfig.relief_reader); entries end in _reader")
     parser.add_argument("--denoise", action="store_true",
                         help="capture with the photo's fine contrast denoised (CaptureConfig.denoise_detail); "
@@ -636,10 +640,11 @@ def main() -> None:
     # Nor does a capture without the relief test overwrite the default's entry.
     key_suffix += "_no_relief_test" if args.no_relief_test else ""
     command_suffix += " --no-relief-test" if args.no_relief_test else ""
-    key_suffix += "_fine_relief" if args.fine_relief else ""
-    command_suffix += " --fine-relief" if args.fine_relief else ""
-    if args.fine_relief and args.fine_relief_strength != 1.0:
-        key_suffix += f"_{args.fine_relief_strength:g}"
+    key_suffix += "" if args.fine_relief else "_no_fine_relief"
+    command_suffix += "" if args.fine_relief else " --no-fine-relief"
+    if args.fine_relief and args.fine_relief_strength != CaptureConfig.fine_relief_strength:
+        # Strength 1, the unit's own reading, ends them in _fine_relief.
+        key_suffix += "_fine_relief" + ("" if args.fine_relief_strength == 1.0 else f"_{args.fine_relief_strength:g}")
         command_suffix += f" --fine-relief-strength {args.fine_relief_strength:g}"
     key_suffix += "_reader" if args.relief_reader else ""
     command_suffix += f" --relief-reader {args.relief_reader}" if args.relief_reader else ""

@@ -279,10 +279,10 @@ def _added_detail_summary(capture: dict) -> str:
     # The diffuse's fitted gains follow the network's diffuse, which carries some of a relief's shading.
     shading = "the diffuse's fitted gains carry some of the shading too"
     if capture.get("fine_relief"):
-        shading += "; the normals' detail is the relief the network's normal unit reads in the photo (--fine-relief)"
+        # A capture's provenance from before the strength was recorded read the unit's whole relief.
         strength = float(capture.get("fine_relief_strength", 1.0))
-        if strength != 1.0:
-            shading += f", times {strength:g} (--fine-relief-strength)"
+        shading += (f"; the normals' detail is the relief the network's normal unit reads in the photo, times "
+                    f"{strength:g} (--fine-relief-strength)")
     if kept >= 0.995:
         return ("the photo's; the relief test read its fine contrast as shading: the normals keep all of their "
                 f"detail; {shading}")

@@ -38,13 +38,14 @@ read as albedo (``albedo_share``), from the fitted ones toward the network's dif
 the network's own normals, where they follow that contrast just below its resolution, hold relief
 made up from the albedo: that share of their band, as the fitted gains explain it, is taken out.
 
-``CaptureConfig.fine_relief`` reads the normals' detail another way (``fine_relief``): the
-network's normal unit, which reads relief from a flash photo's shading, run once more on the photo
-itself (at up to ``FINE_RELIEF_SIZE``), its slope above the network's band weighted by each
-pixel's diffuse share (glints are the specular's, not relief) and put in place of the photo's
-contrast times the normals' gains, scaled by the relief test's gain all the same. A metal has no
-diffuse shading for the unit to read: by each network pixel's metallic share (as the exports
-split the maps) the normals keep the gains' detail, the reading of the specular's shading.
+With ``CaptureConfig.fine_relief`` (on by default) the normals' detail is read another way
+(``fine_relief``): the network's normal unit, which reads relief from a flash photo's shading, run
+once more on the photo itself (at up to ``FINE_RELIEF_SIZE``), its slope above the network's band
+weighted by each pixel's diffuse share (glints are the specular's, not relief), times
+``FINE_RELIEF_STRENGTH``, put in place of the photo's contrast times the normals' gains, and
+scaled by the relief test's gain all the same. A metal has no diffuse shading for the unit to
+read: by each network pixel's metallic share (as the exports split the maps) the normals keep the
+gains' detail, the reading of the specular's shading.
 
 Fine normals, read either way, spread the specular lobe, and the refinement fitted the lobe to the
 photo without them: with ``add_detail``'s ``keep_lobe_peak`` (``CaptureConfig.keep_lobe_peak``)
@@ -294,6 +295,31 @@ FINE_RELIEF_SIZE = 1024
 FINE_RELIEF_MATTE_POWER = 1.0
 
 
+#: The factor of the relief the unit reads that capture gives the normals by default
+#: (``CaptureConfig.fine_relief_strength``): half. An estimate that correlates c with the truth
+#: has its least error at c^2 of the truth's energy; the unit's fine slope correlates about 0.5
+#: with procedural relief's and holds about 0.6 of its energy unweighted. A relief reader trained
+#: with a re-rendering loss under other flashes than the photo's (``scripts/train_relief_reader.py``)
+#: learnt to read about half of what the unit reads, and at 0.5 the flat grained wood that the
+#: relief test lets through keeps less made-up relief than the upsampled answer has (at 1 more).
+#: On held-out procedural relief the errors are lower still at 1 (benchmarks/README.md, detail: the
+#: fine relief's strength).
+FINE_RELIEF_STRENGTH = 0.5
+
+
+def release_freed_heap() -> None:
+    """Give the pages of freed heap blocks back to the system (glibc's ``malloc_trim``). The normal
+    unit's activations at 1024 px are blocks under glibc's mmap threshold: freed, they stay in its
+    heap, and a 4096 px capture's later stages then peak about 100 MiB higher. Elsewhere than
+    glibc, nothing."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (AttributeError, OSError):
+        pass
+
+
 def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, fov: float,
                 low_size: tuple[int, int], max_size: int = FINE_RELIEF_SIZE,
                 matte: torch.Tensor | None = None, strength: float = 1.0, reader=None,
@@ -332,6 +358,7 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
             slope = model.octave_slope(model.relief_inputs(small.to(device), lights.to(device), fov))
         slope = slope.float().to(photo.device)
         slope = slope - upsample_bilinear(downsample(slope, low_size), *size)
+    release_freed_heap()
     if matte is not None:
         weight = matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER
         slope = slope * upsample_bilinear(weight, *slope.shape[-2:])

@@ -28,7 +28,7 @@ from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
 from ..model.symmetry import check_symmetries, parse_symmetries
-from .detail import fine_relief, matte_share, photo_relief_gain, relief_test_reads
+from .detail import FINE_RELIEF_STRENGTH, fine_relief, matte_share, photo_relief_gain, relief_test_reads
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -77,24 +77,26 @@ class CaptureConfig:
     (``detail.add_detail``'s ``albedo_share``). False: the normals and the diffuse keep the gains
     fitted against the network's maps, whatever the photo."""
 
-    fine_relief: bool = False
+    fine_relief: bool = True
     """From 4 times the network's resolution on, read the normals' detail above it with the
     network's normal unit run on the photo itself (``detail.fine_relief``, at up to 1024 px,
     weighted by each pixel's diffuse share) instead of the photo's contrast times the normals'
-    gains, which a metal keeps by its metallic share (it has no diffuse shading to read). On
-    held-out procedural relief at 1024 px the normal and re-rendering errors fall
-    (benchmarks/README.md, detail); off by default because a flat grained wood that the relief
-    test reads as partly relief gets its grain as relief, and it takes about 2 s more on two
-    cores."""
+    gains, which a metal keeps by its metallic share (it has no diffuse shading to read). At
+    ``fine_relief_strength`` 0.5 the normal and re-rendering errors of held-out procedural relief,
+    phone-like scenes and card-blue at 1024 px are lower than with the gains alone, and a flat
+    grained wood that the relief test reads as partly relief gets less made-up relief than the
+    upsampled answer has (benchmarks/README.md, detail: the fine relief). It takes about 2 s more
+    on two cores at 1024 px and above. False: the photo's contrast times the normals' gains."""
 
-    fine_relief_strength: float = field(default=1.0, metadata={"parse": non_negative})
+    fine_relief_strength: float = field(default=FINE_RELIEF_STRENGTH, metadata={"parse": non_negative})
     """With ``fine_relief``, the factor of the relief it reads (``detail.fine_relief``): 1 the
-    normal unit's own reading. On held-out procedural relief at 1024 px the normals' fine energy is
-    0.13 of the truth's at 1 and 0.64 at 3, where the normal RMSE is still below the upsampled
-    answer's (0.0859 against 0.0899); a photo whose fine contrast is not relief, a flat grained
-    wood that the relief test lets through or card-blue's foil, gets more made-up relief
-    (benchmarks/README.md, detail: the fine relief). A value other than 1 without ``fine_relief``
-    is refused: it would change nothing."""
+    normal unit's own reading; the default, ``detail.FINE_RELIEF_STRENGTH``, half of it. On
+    held-out procedural relief at 1024 px the normals' fine energy is 0.045 of the truth's at 0.5,
+    0.14 at 1 and 0.66 at 3, where the normal RMSE is still below the upsampled answer's (0.0864
+    against 0.0899); a photo whose fine contrast is not relief, a flat grained wood that the relief
+    test lets through or card-blue's foil, gets more made-up relief (benchmarks/README.md, detail:
+    the fine relief's strength). A value other than the default without ``fine_relief`` is
+    refused: it would change nothing."""
 
     relief_reader: str | None = field(default=None, metadata={"metavar": "FILE"})
     """With ``fine_relief``, a relief reader's weights (``model.relief_reader``, trained by
@@ -169,12 +171,13 @@ class CaptureConfig:
                 check(getattr(self, name))
             except ValueError as error:
                 raise ValueError(f"{name} {error}") from None
-        if self.fine_relief_strength != 1.0 and not self.fine_relief:
+        if self.fine_relief_strength != FINE_RELIEF_STRENGTH and not self.fine_relief:
             # Else the strength would be dropped without a word.
             raise ValueError(f"fine_relief_strength {self.fine_relief_strength:g} applies only with fine_relief "
-                             "(--fine-relief)")
+                             "(not with --no-fine-relief)")
         if self.relief_reader is not None and not self.fine_relief:
-            raise ValueError(f"relief_reader {self.relief_reader} applies only with fine_relief (--fine-relief)")
+            raise ValueError(f"relief_reader {self.relief_reader} applies only with fine_relief "
+                             "(not with --no-fine-relief)")
 
 
 @dataclass(frozen=True)

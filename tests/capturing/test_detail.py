@@ -514,8 +514,10 @@ def test_the_report_says_what_the_detail_step_did():
     assert "normal unit" not in detail_summary({**base, "normal_detail": 0.34})
     assert "times 2.5 (--fine-relief-strength)" in detail_summary(
         {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 2.5})
-    assert "--fine-relief-strength" not in detail_summary(
-        {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 1.0})
+    assert "times 0.5 (--fine-relief-strength)" in detail_summary(
+        {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 0.5})
+    # A provenance from before the strength was recorded: the unit's whole reading.
+    assert "times 1 (--fine-relief-strength)" in detail_summary({**base, "normal_detail": 0.34, "fine_relief": True})
     assert "a change of hue explains (--colour-test)" in detail_summary({**base, "normal_detail": 0.34,
                                                                           "colour_tested": True})
     assert "hue" not in detail_summary({**base, "normal_detail": 0.0, "colour_tested": True})
@@ -694,17 +696,19 @@ def test_a_fine_relief_strength_without_the_fine_relief_is_refused_in_one_line(t
     from mideepbasis.cli import main
     from mideepbasis.evaluation import EvaluationConfig
 
-    message = "fine_relief_strength 3 applies only with fine_relief (--fine-relief)"
+    message = "fine_relief_strength 3 applies only with fine_relief (not with --no-fine-relief)"
     with pytest.raises(ValueError, match=re.escape(message)):
-        CaptureConfig(fine_relief_strength=3.0)
+        CaptureConfig(fine_relief=False, fine_relief_strength=3.0)
     with pytest.raises(ValueError, match=re.escape(message)):
-        EvaluationConfig(data="d", fine_relief_strength=3.0)
-    assert CaptureConfig(fine_relief=True, fine_relief_strength=3.0).fine_relief_strength == 3.0
-    assert EvaluationConfig(data="d", fine_relief=True, fine_relief_strength=3.0).fine_relief_strength == 3.0
+        EvaluationConfig(data="d", fine_relief=False, fine_relief_strength=3.0)
+    assert CaptureConfig(fine_relief_strength=3.0).fine_relief_strength == 3.0  # the fine relief is on by default
+    assert EvaluationConfig(data="d", fine_relief_strength=3.0).fine_relief_strength == 3.0
+    assert CaptureConfig(fine_relief=False).fine_relief_strength == detail.FINE_RELIEF_STRENGTH
     photo = tmp_path / "photo.png"
     photo.write_bytes(b"")  # never read: the options are refused first
-    assert main(["capture", str(photo), "-o", str(tmp_path / "out"), "--fine-relief-strength", "3"]) != 0
-    assert main(["evaluate", "--data", str(tmp_path), "-o", str(tmp_path / "evaluated"),
+    assert main(["capture", str(photo), "-o", str(tmp_path / "out"), "--no-fine-relief",
+                 "--fine-relief-strength", "3"]) != 0
+    assert main(["evaluate", "--data", str(tmp_path), "-o", str(tmp_path / "evaluated"), "--no-fine-relief",
                  "--fine-relief-strength", "3"]) != 0
     errors = capsys.readouterr().err.strip().splitlines()
     assert errors == [f"mideepbasis: error: capture: {message}", f"mideepbasis: error: evaluate: {message}"]
@@ -741,16 +745,16 @@ def test_a_relief_reader_reads_the_fine_relief_in_the_units_place(tmp_path, caps
     matte = detail.matte_share(low_maps, light, fov, capturer.convention, capturer.model.config.plane_extent)
     # The reader's slope, weighted by the diffuse's share as the unit's is.
     expected = read_relief(reader, photo[None], light, fov, (LOW, LOW)) * upsample_bilinear(
-        matte[None, None] ** detail.FINE_RELIEF_MATTE_POWER, 128, 128)
+        matte[None, None] ** detail.FINE_RELIEF_MATTE_POWER, 128, 128) * capture_config.fine_relief_strength
     read = captured["reader"].fine_slope
     assert float(expected.abs().max()) > 0.01
     assert torch.allclose(read, expected, atol=1e-6)
     assert not torch.allclose(read, captured["unit"].fine_slope, atol=1e-3)
     assert capturer.capture(photo).material.provenance["capture"]["relief_reader"] == "reader.safetensors"
-    message = "relief_reader r.safetensors applies only with fine_relief (--fine-relief)"
+    message = "relief_reader r.safetensors applies only with fine_relief (not with --no-fine-relief)"
     with pytest.raises(ValueError, match=re.escape(message)):
-        CaptureConfig(relief_reader="r.safetensors")
-    assert main(["capture", str(tmp_path / "photo.png"), "-o", str(tmp_path / "out"),
+        CaptureConfig(fine_relief=False, relief_reader="r.safetensors")
+    assert main(["capture", str(tmp_path / "photo.png"), "-o", str(tmp_path / "out"), "--no-fine-relief",
                  "--relief-reader", "r.safetensors"]) != 0
     assert capsys.readouterr().err.strip() == f"mideepbasis: error: capture: {message}"
 
