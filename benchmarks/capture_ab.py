@@ -2,9 +2,9 @@
 
     .venv/bin/python benchmarks/capture_ab.py --no-refine-unclamped-moves [--repeats 8]
     .venv/bin/python benchmarks/capture_ab.py --b-model runs/OTHER.safetensors      # two models, the same options
-    .venv/bin/python benchmarks/capture_ab.py --resolution 1024 --no-fine-relief --a-resolution-too
+    .venv/bin/python benchmarks/capture_ab.py --photo PHOTO --resolution 1024 --no-fine-relief --a-resolution-too
 
-Captures the bundled example photo with capture's defaults (A) and with the capture options given
+Captures the bundled example photo (or ``--photo``) with capture's defaults (A) and with the capture options given
 (B; any of ``mideepbasis capture``'s, as ``CaptureConfig`` reads them, and ``--b-model``), A and B taken in turn after
 one untimed capture each (which records drjit's refinement step; ``--a-resolution-too``: A at B's
 working resolution), and prints the median wall time
@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import mideepbasis  # noqa: F401
 from mideepbasis.capturing import CaptureConfig, Capturer
@@ -30,11 +31,16 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=8)
     parser.add_argument("--model", default=None, help="checkpoint (default: the shipped model)")
     parser.add_argument("--b-model", default=None, help="B's checkpoint (default: --model's)")
+    parser.add_argument("--photo", type=Path, default=None,
+                        help="the photo to capture (default: the bundled example photo, whose fine contrast the "
+                             "relief test reads as albedo: the fine relief's unit does not run on it)")
     parser.add_argument("--a-resolution-too", action="store_true",
                         help="capture A at B's --resolution too, so that only the other options differ")
     add_config_arguments(parser, CaptureConfig, describe=False)
     args = parser.parse_args()
-    model, photo = load_model(args.model), example_capture_dir() / "photo.jpg"
+    model, photo = load_model(args.model), args.photo or example_capture_dir() / "photo.jpg"
+    if not photo.is_file():
+        parser.error(f"--photo {photo}: no such file")
     changes = [f"{name} {value}" for name, value in given_fields(args, CaptureConfig).items()]
     changes += [f"model {args.b_model}"] if args.b_model else []
     b_model = load_model(args.b_model) if args.b_model else model

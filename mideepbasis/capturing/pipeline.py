@@ -114,8 +114,9 @@ class CaptureConfig:
     (benchmarks/README.md, detail: the photo's noise)."""
 
     colour_test: bool = False
-    """From 4 times the network's resolution on, give the normals' detail the photo's fine
-    luminance contrast less the part a change of hue explains (``detail.shading_contrast``):
+    """With ``fine_relief`` off, from 4 times the network's resolution on, give the normals' gains
+    the photo's fine luminance contrast less the part a change of hue explains
+    (``detail.shading_contrast``):
     shading moves a pixel's chroma only along its own colour's, so the edges of a printed or inlaid
     colour texture are the albedo's, not relief. False: the whole luminance contrast. Off by
     default: card-blue re-renders a little better with it from its photo 00 and the same from each
@@ -175,6 +176,9 @@ class CaptureConfig:
             # Else the strength would be dropped without a word.
             raise ValueError(f"fine_relief_strength {self.fine_relief_strength:g} applies only with fine_relief "
                              "(not with --no-fine-relief)")
+        if self.colour_test and self.fine_relief:
+            # The test chooses the contrast the normals' gains multiply, which the fine relief replaces.
+            raise ValueError("colour_test applies only without fine_relief (with --no-fine-relief)")
         if self.relief_reader is not None and not self.fine_relief:
             raise ValueError(f"relief_reader {self.relief_reader} applies only with fine_relief "
                              "(not with --no-fine-relief)")

@@ -482,7 +482,7 @@ def test_capture_leaves_a_change_of_hue_out_of_the_normals_only_where_the_relief
     results = {}
     for size, test in itertools.product((SIZE, 2 * LOW), (True, False)):
         config = CaptureConfig(light=(0.25, -0.15), resolution=size, network_resolution=LOW, symmetries=1,
-                               refine=RefineConfig(steps=0), relief_test=False, colour_test=test)
+                               refine=RefineConfig(steps=0), relief_test=False, fine_relief=False, colour_test=test)
         material = Capturer(tiny_checkpoint, config).capture(downsample(photo, size)[0]).material
         results[size, test] = material.provenance["capture"]["colour_tested"], material.to_tensor()
     assert results[SIZE, True][0] is True and results[SIZE, False][0] is False
@@ -713,6 +713,19 @@ def test_a_fine_relief_strength_without_the_fine_relief_is_refused_in_one_line(t
     errors = capsys.readouterr().err.strip().splitlines()
     assert errors == [f"mideepbasis: error: capture: {message}", f"mideepbasis: error: evaluate: {message}"]
     assert not (tmp_path / "out").exists() and not (tmp_path / "evaluated").exists()
+
+
+def test_the_colour_test_under_the_fine_relief_is_refused_in_one_line(tmp_path, capsys):
+    from mideepbasis.capturing import CaptureConfig
+    from mideepbasis.cli import main
+
+    message = "colour_test applies only without fine_relief (with --no-fine-relief)"
+    with pytest.raises(ValueError, match=re.escape(message)):
+        CaptureConfig(colour_test=True)
+    assert CaptureConfig(fine_relief=False, colour_test=True).colour_test
+    assert main(["capture", str(tmp_path / "photo.jpg"), "-o", str(tmp_path / "out"), "--colour-test"]) != 0
+    assert capsys.readouterr().err.strip() == f"mideepbasis: error: capture: {message}"
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_relief_reader_reads_the_fine_relief_in_the_units_place(tmp_path, capsys):

@@ -208,17 +208,19 @@ def test_an_evaluation_passes_the_capture_options_it_sets_and_leaves_the_rest_to
     default = evaluation_capture_config(EvaluationConfig(data="d"), fov=30.0)
     assert default == CaptureConfig(fov=30.0)
     given = {"symmetries": 2, "relief_test": False, "fine_relief_strength": 3.0,
-             "relief_reader": "reader.safetensors", "denoise_detail": True, "colour_test": True, "keep_lobe_peak": False,
+             "relief_reader": "reader.safetensors", "denoise_detail": True, "keep_lobe_peak": False,
              "grey_specular": True, "specular_floor": 0.0, "normal_strength": 0.5, "lobe_variation": 0.25}
-    # The fine relief's strength and reader apply only with the fine relief on, capture's default.
-    assert set(given) | {"fine_relief"} == set(SHARED_CAPTURE_FIELDS)
+    # The fine relief's strength and reader apply only with the fine relief on, capture's default, and
+    # the colour test only with it off.
+    assert set(given) | {"fine_relief", "colour_test"} == set(SHARED_CAPTURE_FIELDS)
     config = evaluation_capture_config(EvaluationConfig(data="d", **given), fov=30.0, detail=False)
     assert {name: getattr(config, name) for name in given} == given
     assert config.fov == 30.0 and config.detail is False
     for name, value in given.items():  # each differs from capture's default, so each was passed on
         assert getattr(CaptureConfig(), name) != value
     assert CaptureConfig().fine_relief
-    assert not evaluation_capture_config(EvaluationConfig(data="d", fine_relief=False)).fine_relief
+    without = evaluation_capture_config(EvaluationConfig(data="d", fine_relief=False, colour_test=True))
+    assert not without.fine_relief and without.colour_test and not CaptureConfig().colour_test
 
 
 def test_evaluate_refuses_a_lobe_variation_outside_zero_to_one(capsys):
