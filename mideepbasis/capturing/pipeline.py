@@ -527,7 +527,7 @@ class Capturer:
                                extent=extent)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine, denoise_detail=self.config.denoise_detail,
-                       colour_test=wide and self.config.colour_test and fine is None,
+                       colour_test=wide and self.config.colour_test,
                        grey_specular=self.config.grey_specular, specular_floor=self.config.specular_floor,
                        normal_strength=self.config.normal_strength, relief_test_read=tested,
                        normal_detail=normal_detail)
