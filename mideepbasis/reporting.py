@@ -279,7 +279,7 @@ def _added_detail_summary(capture: dict) -> str:
     # The diffuse's fitted gains follow the network's diffuse, which carries some of a relief's shading.
     shading = "the diffuse's fitted gains carry some of the shading too"
     if capture.get("fine_relief"):
-        # A capture's provenance from before the strength was recorded read the unit's whole relief.
+        # A provenance that does not record the strength read the unit's whole relief.
         strength = float(capture.get("fine_relief_strength", 1.0))
         shading += (f"; the normals' detail is the relief the network's normal unit reads in the photo, times "
                     f"{strength:g} (--fine-relief-strength)")

@@ -290,8 +290,8 @@ FINE_RELIEF_SIZE = 1024
 #: 0.1609); the calibration set's relief normal RMSE 0.0683 / 0.0690 / 0.0699 (``benchmarks/
 #: detail.py --first-seed 500001000 --seed 1``); the benchmark's crumpled foil 0.0139 / 0.0136 /
 #: 0.0136 (0.0135), its brushed silver, a metal with no diffuse share, 0.0421 / 0.0458 / 0.0492
-#: (0.0452) when the unit's reading was all its normals got (now they keep the gains' detail by
-#: their metallic share, ``add_detail``: 0.0426 at power 1).
+#: (0.0452) with the unit's reading alone in its normals; keeping the gains' detail by the
+#: metallic share (``add_detail``), 0.0426 at power 1.
 FINE_RELIEF_MATTE_POWER = 1.0
 
 

@@ -516,7 +516,7 @@ def test_the_report_says_what_the_detail_step_did():
         {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 2.5})
     assert "times 0.5 (--fine-relief-strength)" in detail_summary(
         {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 0.5})
-    # A provenance from before the strength was recorded: the unit's whole reading.
+    # A provenance that does not record the strength: the unit's whole reading.
     assert "times 1 (--fine-relief-strength)" in detail_summary({**base, "normal_detail": 0.34, "fine_relief": True})
     assert "a change of hue explains (--colour-test)" in detail_summary({**base, "normal_detail": 0.34,
                                                                           "colour_tested": True})
