@@ -9,7 +9,8 @@ import torch
 
 from mideepbasis.data.procedural import GeneratorConfig, generate
 from mideepbasis.data.procedural.core import height_to_normal
-from mideepbasis.height import height_from_normals
+from mideepbasis.height import (cosine_transform, height_from_normals, inverse_cosine_transform, slopes,
+                                sine_transform)
 
 
 def normals_from_height(height: torch.Tensor, tileable: bool = False) -> torch.Tensor:
@@ -84,3 +85,46 @@ def test_a_capture_folder_gets_the_height_as_exr_and_16_bit_png(tmp_path):
     scale = written["png_white"] - written["png_black"]
     assert abs(png.astype(float) / 65535 * scale + written["png_black"] - height).max() < scale / 60000
     assert not written["tileable"]
+
+
+@pytest.mark.parametrize("size", [1, 2, 7, 16])
+def test_the_cosine_and_sine_transforms_are_their_sums(size):
+    # Against their definitions, summed as a matrix product in float64, along either dimension.
+    values = torch.randn(size, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(size))
+    n = torch.arange(size, dtype=torch.float64)
+    angles = math.pi * n[:, None] * (n[None, :] + 0.5) / size  # [k, n]
+    tolerance = {"atol": 1e-12, "rtol": 0.0}
+    torch.testing.assert_close(cosine_transform(values, 0), torch.cos(angles) @ values, **tolerance)
+    torch.testing.assert_close(sine_transform(values, 0), torch.sin(angles) @ values, **tolerance)
+    torch.testing.assert_close(cosine_transform(values.T, 1), (torch.cos(angles) @ values).T, **tolerance)
+    torch.testing.assert_close(inverse_cosine_transform(cosine_transform(values, 0), 0), values, **tolerance)
+
+
+def mirrored_height(normal: torch.Tensor) -> torch.Tensor:
+    """The least-squares height of the periodic field of twice the size that mirrors the slopes
+    (each odd along its own axis, even across it), by FFTs in float64, cropped: the reference the
+    cosine-transform solve must equal."""
+    along_columns, along_rows = (s.double() for s in slopes(normal))
+    height, width = along_columns.shape
+    gx = torch.cat([torch.cat([along_columns, -along_columns.flip(1)], 1),
+                    torch.cat([along_columns.flip(0), -along_columns.flip(0).flip(1)], 1)], 0)
+    gy = torch.cat([torch.cat([along_rows, along_rows.flip(1)], 1),
+                    torch.cat([-along_rows.flip(0), -along_rows.flip(0).flip(1)], 1)], 0)
+    u = torch.sin(2 * math.pi * torch.fft.fftfreq(2 * width, dtype=torch.float64))[None, :]
+    v = torch.sin(2 * math.pi * torch.fft.fftfreq(2 * height, dtype=torch.float64))[:, None]
+    denominator = u * u + v * v
+    spectrum = (-1j * u * torch.fft.fft2(gx) - 1j * v * torch.fft.fft2(gy)) / denominator.clamp(min=1e-12)
+    spectrum[denominator <= 1e-12] = 0
+    field = torch.fft.ifft2(spectrum).real[:height, :width]
+    return (field - field.mean())[None]
+
+
+@pytest.mark.parametrize("shape", [(64, 64), (37, 50)])
+def test_a_map_that_does_not_tile_is_integrated_as_its_mirrored_field(shape):
+    tilt = torch.tensor([0.3, 0.3, 1.0]).view(3, 1, 1)
+    normal = torch.randn(3, *shape, generator=torch.Generator().manual_seed(1)) * tilt
+    normal = normal / normal.norm(dim=0, keepdim=True)
+    reference = mirrored_height(normal)
+    # float32 against float64: within a millionth of the height's range.
+    atol = 1e-6 * float(reference.max() - reference.min())
+    torch.testing.assert_close(height_from_normals(normal).double(), reference, atol=atol, rtol=0.0)
