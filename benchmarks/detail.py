@@ -49,8 +49,9 @@ thresholds). Entry ``detail_seeds_N``; every other entry it writes ends in ``_se
 ``--no-fine-relief`` captures with the normals' detail as the photo's contrast times their gains
 instead of the relief the network's normal unit reads (``CaptureConfig.fine_relief``, on by
 default): its entries end in ``_no_fine_relief``. ``--fine-relief-strength S`` other than capture's
-default (``CaptureConfig.fine_relief_strength``) ends them in ``_fine_relief_S``, or for the unit's
-own reading, S = 1, in ``_fine_relief``.
+default (``CaptureConfig.fine_relief_strength``) ends them in ``_fine_relief_S`` (the entries
+``detail_fine_relief`` and ``detail_seeds_500001000_fine_relief`` hold one reading at 1, from before
+capture read the photo's half turn too).
 ``--relief-reader FILE`` reads that relief with a relief reader (``CaptureConfig.relief_reader``):
 its entries end in ``_reader`` after those.
 ``--denoise`` captures with the photo's fine contrast denoised (``CaptureConfig.denoise_detail``):
@@ -578,7 +579,7 @@ def main() -> None:
     parser.add_argument("--fine-relief-strength", type=float, default=CaptureConfig.fine_relief_strength,
                         metavar="S", help="the factor of the relief the fine relief reads "
                                           "(CaptureConfig.fine_relief_strength; default: capture's); other than that, "
-                                          "entries end in _fine_relief_S (1: _fine_relief)")
+                                          "entries end in _fine_relief_S")
     parser.add_argument("--relief-reader", default=None, metavar="FILE",
                         help="a relief reader's weights that read the fine relief "
                              "(CaptureConfig.relief_reader); entries end in _reader")
@@ -643,8 +644,7 @@ def main() -> None:
     key_suffix += "" if args.fine_relief else "_no_fine_relief"
     command_suffix += "" if args.fine_relief else " --no-fine-relief"
     if args.fine_relief and args.fine_relief_strength != CaptureConfig.fine_relief_strength:
-        # Strength 1, the unit's own reading, ends them in _fine_relief.
-        key_suffix += "_fine_relief" + ("" if args.fine_relief_strength == 1.0 else f"_{args.fine_relief_strength:g}")
+        key_suffix += f"_fine_relief_{args.fine_relief_strength:g}"
         command_suffix += f" --fine-relief-strength {args.fine_relief_strength:g}"
     key_suffix += "_reader" if args.relief_reader else ""
     command_suffix += f" --relief-reader {args.relief_reader}" if args.relief_reader else ""

@@ -250,8 +250,8 @@ def write_report_sheet(folder: Path, sheet: ReportSheet, environment: np.ndarray
 def detail_summary(capture: dict) -> str | None:
     """What the maps hold above the network's resolution, in words, from a capture's provenance
     (``capture``: ``network_size``, ``detail_added``, ``relief_test_read``, ``normal_detail``,
-    ``fine_relief``, ``fine_relief_strength``, ``colour_tested``, ``detail_denoised``); None for a
-    provenance without them."""
+    ``fine_relief``, ``fine_relief_strength``, ``fine_relief_symmetries``, ``colour_tested``,
+    ``detail_denoised``); None for a provenance without them."""
     if "network_size" not in capture:
         return None
     if not capture.get("detail_added"):
@@ -281,7 +281,10 @@ def _added_detail_summary(capture: dict) -> str:
     if capture.get("fine_relief"):
         # A provenance that does not record the strength read the unit's whole relief.
         strength = float(capture.get("fine_relief_strength", 1.0))
-        shading += (f"; the normals' detail is the relief the network's normal unit reads in the photo, times "
+        mirrors = int(capture.get("fine_relief_symmetries") or 1)  # one reading where it is not recorded
+        read_in = ("the photo" if mirrors == 1 else
+                   f"the photo and its {mirrors - 1} mirror image{'s' if mirrors > 2 else ''}, where they agree")
+        shading += (f"; the normals' detail is the relief the network's normal unit reads in {read_in}, times "
                     f"{strength:g} (--fine-relief-strength)")
     if kept >= 0.995:
         return ("the photo's; the relief test read its fine contrast as shading: the normals keep all of their "

@@ -40,8 +40,10 @@ made up from the albedo: that share of their band, as the fitted gains explain i
 
 With ``CaptureConfig.fine_relief`` (on by default) the normals' detail is read another way
 (``fine_relief``): the network's normal unit, which reads relief from a flash photo's shading, run
-once more on the photo itself (at up to ``FINE_RELIEF_SIZE``), its slope above the network's band
-weighted by each pixel's diffuse share (glints are the specular's, not relief), times
+once more on the photo itself (at up to ``FINE_RELIEF_SIZE``) and on its mirror images, its slope
+above the network's band averaged over them and weighted by where they agree (``mirror_agreement``:
+a relief's reading mirrors with the photo, the unit's misreadings of glints and grain do not) and by
+each pixel's diffuse share (glints are the specular's, not relief), times
 ``FINE_RELIEF_STRENGTH``, put in place of the photo's contrast times the normals' gains, and
 scaled by the relief test's gain all the same. A metal has no diffuse shading for the unit to
 read: by each network pixel's metallic share (as the exports split the maps) the normals keep the
@@ -296,15 +298,15 @@ FINE_RELIEF_MATTE_POWER = 1.0
 
 
 #: The factor of the relief the unit reads that capture gives the normals by default
-#: (``CaptureConfig.fine_relief_strength``): half. An estimate that correlates c with the truth
-#: has its least error at c^2 of the truth's energy; the unit's fine slope correlates about 0.5
-#: with procedural relief's and holds about 0.6 of its energy unweighted. A relief reader trained
-#: with a re-rendering loss under other flashes than the photo's (``scripts/train_relief_reader.py``)
-#: learnt to read about half of what the unit reads, and at 0.5 the flat grained wood that the
-#: relief test lets through keeps less made-up relief than the upsampled answer has (at 1 more).
-#: On held-out procedural relief the errors are lower still at 1 (benchmarks/README.md, detail: the
-#: fine relief's strength).
-FINE_RELIEF_STRENGTH = 0.5
+#: (``CaptureConfig.fine_relief_strength``): the reading itself, as its mirror images agree on it
+#: (``fine_relief``'s ``symmetries``). Chosen on the calibration set (``benchmarks/detail.py
+#: --first-seed 500001000 --seed 1``): the most that keeps the flat textured materials' made-up
+#: relief below the upsampled answer's (their normal RMSE with 2 readings 0.0146 at 1; with 4, 0.0146
+#: at 1 and 0.0155 at 1.5; upsampled 0.0150), where the relief's normal RMSE still falls (0.0692 at
+#: 1; with 4 readings 0.0693 at 1, 0.0680 at 1.5).
+#: A single reading at 1 gives card-blue's foil relief it does not have (benchmarks/README.md,
+#: detail: the fine relief's strength); agreeing mirror images do not.
+FINE_RELIEF_STRENGTH = 1.0
 
 
 def release_freed_heap() -> None:
@@ -320,18 +322,67 @@ def release_freed_heap() -> None:
         pass
 
 
+#: How many of the photo's mirror images ``fine_relief`` reads at most (``mirror_images``); capture
+#: reads no more than its ``symmetries``. Each is one more run of the unit (about 3 s at 1024 px on
+#: two cores). On the calibration set (``benchmarks/detail.py --first-seed 500001000 --seed 1``) the
+#: four mirrorings read no better than the photo and its half turn.
+FINE_RELIEF_SYMMETRIES = 2
+
+
+def mirror_images(count: int):
+    """The ``count`` symmetries (1, 2 or 4; ``model.symmetry.Symmetry``) ``fine_relief`` reads the
+    photo under: the photo itself, then its half turn, then its two mirrorings. Turns by a
+    quarter are left out: they would turn the network's size too."""
+    from ..model.symmetry import SYMMETRY_SETS, Symmetry
+
+    if count not in (1, 2, 4):
+        raise ValueError(f"fine_relief reads 1, 2 or 4 mirror images, got {count!r}")
+    half_turn = Symmetry(mirror_columns=True, mirror_rows=True)
+    return {1: SYMMETRY_SETS[1], 2: (Symmetry(), half_turn), 4: SYMMETRY_SETS[4]}[count]
+
+
+#: Radius of the windows ``mirror_agreement`` compares the readings in [reading pixels].
+AGREEMENT_RADIUS = 8
+
+#: Power of ``mirror_agreement`` that weighs the mean reading in ``fine_relief``.
+AGREEMENT_POWER = 2.0
+
+
+def mirror_agreement(readings: list[torch.Tensor], radius: int = AGREEMENT_RADIUS) -> torch.Tensor:
+    """(B, 1, H, W) how far readings (B, 2, H, W) of one slope agree, in windows of ``2 radius + 1``
+    pixels: the energy of their mean over their mean energy, 1 where they are the same, ``1 / n``
+    for ``n`` unrelated ones of equal energy, 0 where they cancel."""
+    mean = sum(readings) / len(readings)
+    common = _box(mean.square().sum(dim=1, keepdim=True), radius)
+    each = _box(sum(reading.square().sum(dim=1, keepdim=True) for reading in readings) / len(readings), radius)
+    return common / each.clamp(min=1e-12)
+
+
+def symmetric_readings(read: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], photo: torch.Tensor,
+                       lights: torch.Tensor, count: int) -> list[torch.Tensor]:
+    """``read(photo, lights)``, a slope field (B, 2, H, W), for the photo (B, 3, H, W) and its flash
+    (B, 3) moved by each of the ``count`` ``mirror_images``, each reading moved back: a relief's
+    slope read from a mirrored photo under the mirrored flash is the mirrored slope. One reading at
+    a time (the unit's memory)."""
+    return [symmetry.field(read(symmetry.image(photo).contiguous(), symmetry.vectors(lights, dim=1)), inverse=True)
+            for symmetry in mirror_images(count)]
+
+
 def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, fov: float,
                 low_size: tuple[int, int], max_size: int = FINE_RELIEF_SIZE,
                 matte: torch.Tensor | None = None, strength: float = 1.0, reader=None,
-                convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0) -> torch.Tensor:
+                convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0,
+                symmetries: int = 1) -> torch.Tensor:
     """The relief finer than the network's resolution as its normal unit reads it from the photo.
 
     The unit (``DeepBasisNet.normal_unit``, its octaves summed as in the network's pass) runs on
     the photo area-averaged to at most ``max_size`` px, a multiple of the sizes its levels halve
     to; what its slope holds at and below ``low_size`` (area average, bilinear back) is taken out:
-    there the network's answer stays. The slope is weighted by ``matte`` to the power
-    ``FINE_RELIEF_MATTE_POWER``: the relief is read where the photo shows the diffuse's shading.
-    ``strength`` scales it (``CaptureConfig.fine_relief_strength``).
+    there the network's answer stays. With ``symmetries`` above 1 it reads the photo's mirror
+    images too (``symmetric_readings``); their mean is weighted by their agreement
+    (``mirror_agreement``) to the power ``AGREEMENT_POWER``. The slope is weighted by ``matte`` to
+    the power ``FINE_RELIEF_MATTE_POWER``: the relief is read where the photo shows the diffuse's
+    shading. ``strength`` scales it (``CaptureConfig.fine_relief_strength``).
 
     Args:
         model: a network with a normal unit; photo: (B, 3, H, W) linear; light: (B, 3) or (3,)
@@ -339,7 +390,8 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
         matte: (h', w') the diffuse's share of the photo (``matte_share``), at any size; None: 1;
         strength: the slope's factor, 1 the unit's own reading;
         reader: a relief reader (``model.relief_reader``) that reads the slope in the unit's place
-            (``read_relief``, at up to ``max_size`` too), under ``convention`` and ``extent``.
+            (``read_relief``, at up to ``max_size`` too), under ``convention`` and ``extent``;
+        symmetries: 1, 2 or 4 mirror images read (``mirror_images``).
 
     Returns:
         (B, 2, H', W') the x and y slope to add to the normals at the photo's size (bilinear up
@@ -347,17 +399,29 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
     """
     from ..model.relief_reader import read_relief, read_size
 
+    mirror_images(symmetries)  # checked before any work
+    lights = light.float().reshape(-1, 3).expand(photo.shape[0], 3)
     if reader is not None:
-        slope = read_relief(reader, photo, light, fov, low_size, max_size, convention, extent)
+        def read(image: torch.Tensor, flashes: torch.Tensor) -> torch.Tensor:
+            return read_relief(reader, image, flashes, fov, low_size, max_size, convention, extent)
+
+        seen = photo
     else:
         size = read_size(tuple(photo.shape[-2:]), max_size, model.config.normal_unit_stride)
-        small = photo.float() if size == tuple(photo.shape[-2:]) else downsample(photo.float(), size)
-        lights = light.float().reshape(-1, 3).expand(small.shape[0], 3)
+        seen = photo.float() if size == tuple(photo.shape[-2:]) else downsample(photo.float(), size)
         device = next(model.parameters()).device
-        with torch.no_grad():
-            slope = model.octave_slope(model.relief_inputs(small.to(device), lights.to(device), fov))
-        slope = slope.float().to(photo.device)
-        slope = slope - upsample_bilinear(downsample(slope, low_size), *size)
+
+        def read(image: torch.Tensor, flashes: torch.Tensor) -> torch.Tensor:
+            with torch.no_grad():
+                slope = model.octave_slope(model.relief_inputs(image.to(device), flashes.to(device), fov))
+            slope = slope.float().to(photo.device)
+            return slope - upsample_bilinear(downsample(slope, low_size), *slope.shape[-2:])
+
+    readings = symmetric_readings(read, seen, lights, symmetries)
+    slope = sum(readings) / len(readings)
+    if len(readings) > 1:
+        slope = slope * mirror_agreement(readings) ** AGREEMENT_POWER
+    del readings
     release_freed_heap()
     if matte is not None:
         weight = matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER

@@ -28,7 +28,8 @@ from ..material import Material
 from ..model.inputs import encode_inputs
 from ..model.network import DeepBasisNet, DeepBasisOutput
 from ..model.symmetry import check_symmetries, parse_symmetries
-from .detail import FINE_RELIEF_STRENGTH, fine_relief, matte_share, photo_relief_gain, relief_test_reads
+from .detail import (FINE_RELIEF_STRENGTH, FINE_RELIEF_SYMMETRIES, fine_relief, matte_share, photo_relief_gain,
+                     relief_test_reads)
 from .photo import load_photo, parse_resolution
 from .refine import RefineConfig, refine_global_bases
 from .search import SearchConfig, SearchResult, search_light
@@ -79,31 +80,30 @@ class CaptureConfig:
 
     fine_relief: bool = True
     """From 4 times the network's resolution on, read the normals' detail above it with the
-    network's normal unit run on the photo itself (``detail.fine_relief``, at up to 1024 px,
-    weighted by each pixel's diffuse share) instead of the photo's contrast times the normals'
-    gains, which a metal keeps by its metallic share (it has no diffuse shading to read). At
-    ``fine_relief_strength`` 0.5 the normal and re-rendering errors of held-out procedural relief,
-    phone-like scenes and card-blue at 1024 px are lower than with the gains alone, and a flat
-    grained wood that the relief test reads as partly relief gets less made-up relief than the
-    upsampled answer has (benchmarks/README.md, detail: the fine relief). It takes about 2 s more
-    on two cores at 1024 px and above. False: the photo's contrast times the normals' gains."""
+    network's normal unit run on the photo itself and its half turn (``detail.fine_relief``, at up
+    to 1024 px; the mean of the two readings, weighted by where they agree and by each pixel's
+    diffuse share) instead of the photo's contrast times the normals' gains, which a metal keeps by
+    its metallic share (it has no diffuse shading to read). The normal and re-rendering errors of
+    held-out procedural relief, phone-like scenes and card-blue at 1024 px are lower than with the
+    gains alone, and flat textured materials that the relief test reads as partly relief get less
+    made-up relief than the upsampled answer has (benchmarks/README.md, detail: the fine relief).
+    Each reading takes about 3 s on two cores at 1024 px and above; ``symmetries`` 1 reads the
+    photo alone. False: the photo's contrast times the normals' gains."""
 
     fine_relief_strength: float = field(default=FINE_RELIEF_STRENGTH, metadata={"parse": non_negative})
-    """With ``fine_relief``, the factor of the relief it reads (``detail.fine_relief``): 1 the
-    normal unit's own reading; the default, ``detail.FINE_RELIEF_STRENGTH``, half of it. On
-    held-out procedural relief at 1024 px the normals' fine energy is 0.045 of the truth's at 0.5,
-    0.14 at 1 and 0.66 at 3, where the normal RMSE is still below the upsampled answer's (0.0864
-    against 0.0899); a photo whose fine contrast is not relief, a flat grained wood that the relief
-    test lets through or card-blue's foil, gets more made-up relief (benchmarks/README.md, detail:
-    the fine relief's strength). A value other than the default without ``fine_relief`` is
-    refused: it would change nothing."""
+    """With ``fine_relief``, the factor of the relief it reads (``detail.fine_relief``): 1, the
+    default (``detail.FINE_RELIEF_STRENGTH``), the normal unit's own reading as its mirror images
+    agree on it. Higher gives the normals more of the fine energy the truth has, and flat textured
+    materials and card-blue's foil more made-up relief (benchmarks/README.md, detail: the fine
+    relief's strength). A value other than the default without ``fine_relief`` is refused: it would
+    change nothing."""
 
     relief_reader: str | None = field(default=None, metadata={"metavar": "FILE"})
     """With ``fine_relief``, a relief reader's weights (``model.relief_reader``, trained by
     ``scripts/train_relief_reader.py``): a network of its own, trained for the relief above the
     network's band, reads the normals' detail in place of the normal unit (weighted and scaled as
-    the unit's reading is). None: the normal unit. The readers trained so far read as the unit at
-    ``fine_relief_strength`` 0.5 does (benchmarks/README.md, detail: the relief reader)."""
+    the unit's reading is). None: the normal unit. The readers trained so far read about half of
+    what the unit reads (benchmarks/README.md, detail: the relief reader)."""
 
     denoise_detail: bool = False
     """Take the photo's noise out of the detail step's fine contrast first (``detail.denoise_contrast``,
@@ -524,7 +524,7 @@ class Capturer:
             reader = loaded_reader(self.config.relief_reader) if self.config.relief_reader else None
             fine = fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte,
                                strength=self.config.fine_relief_strength, reader=reader, convention=self.convention,
-                               extent=extent)
+                               extent=extent, symmetries=min(self.config.symmetries, FINE_RELIEF_SYMMETRIES))
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine, denoise_detail=self.config.denoise_detail,
                        colour_test=wide and self.config.colour_test,
@@ -604,6 +604,9 @@ class Capturer:
                                                                 "relief_test_read": prediction.relief_test_read,
                                                                 "fine_relief": prediction.fine_slope is not None,
                                                                 "fine_relief_strength": config.fine_relief_strength,
+                                                                "fine_relief_symmetries": (
+                                                                    min(config.symmetries, FINE_RELIEF_SYMMETRIES)
+                                                                    if prediction.fine_slope is not None else None),
                                                                 "relief_reader": (Path(config.relief_reader).name
                                                                                   if prediction.fine_slope is not None
                                                                                   and config.relief_reader else None),

@@ -518,6 +518,12 @@ def test_the_report_says_what_the_detail_step_did():
         {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_strength": 0.5})
     # A provenance that does not record the strength: the unit's whole reading.
     assert "times 1 (--fine-relief-strength)" in detail_summary({**base, "normal_detail": 0.34, "fine_relief": True})
+    # Nor the mirror images: one reading.
+    assert "reads in the photo, times" in detail_summary({**base, "normal_detail": 0.34, "fine_relief": True})
+    assert "reads in the photo and its 3 mirror images, where they agree, times" in detail_summary(
+        {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_symmetries": 4})
+    assert "its 1 mirror image, where" in detail_summary(
+        {**base, "normal_detail": 0.34, "fine_relief": True, "fine_relief_symmetries": 2})
     assert "a change of hue explains (--colour-test)" in detail_summary({**base, "normal_detail": 0.34,
                                                                           "colour_tested": True})
     assert "hue" not in detail_summary({**base, "normal_detail": 0.0, "colour_tested": True})
@@ -534,8 +540,9 @@ def _matte_relief(family: str, seed: int, size: int) -> torch.Tensor:
     return maps
 
 
+@pytest.mark.parametrize("symmetries", [1, 2])
 @pytest.mark.parametrize("family,seed", [("concrete", 1), ("fabric", 4)])
-def test_fine_relief_reads_a_reliefs_shading_finer_than_the_network(family, seed):
+def test_fine_relief_reads_a_reliefs_shading_finer_than_the_network(family, seed, symmetries):
     from mideepbasis.evaluation import above_band
     from mideepbasis.model.checkpoint import load_model
 
@@ -543,11 +550,63 @@ def test_fine_relief_reads_a_reliefs_shading_finer_than_the_network(family, seed
     size, network = 512, model.info.training_size
     maps = _matte_relief(family, seed, size)
     photo, light = _flash_photo(maps)
-    slope = detail.fine_relief(model, photo[None], light, constants.DEFAULT_FOV_DEG, (network, network))
+    slope = detail.fine_relief(model, photo[None], light, constants.DEFAULT_FOV_DEG, (network, network),
+                               symmetries=symmetries)
     assert slope.shape == (1, 2, size, size)
     true_fine = above_band(maps[:, 0:2] / maps[:, 2:3], network)  # the true slopes above the network's band
     correlation = float((slope * true_fine).sum() / (slope.square().sum() * true_fine.square().sum()).sqrt())
     assert correlation > TOLERANCES["fine_relief_correlation"]
+
+
+def _random_slopes(count: int, seed: int, size: int = 48) -> list[torch.Tensor]:
+    generator = torch.Generator().manual_seed(seed)
+    return [torch.randn(1, 2, size, size, generator=generator) for _ in range(count)]
+
+
+def test_mirror_agreement_is_one_where_readings_agree_a_quarter_for_four_unrelated_and_0_where_they_cancel():
+    reading = _random_slopes(1, 0)[0]
+    assert torch.allclose(detail.mirror_agreement([reading] * 4), torch.ones(1, 1, 48, 48), atol=1e-5)
+    assert float(detail.mirror_agreement([reading, -reading]).abs().max()) < 1e-6
+    unrelated = detail.mirror_agreement(_random_slopes(4, 1))
+    # (17 x 17 windows of 2 channels: the ratio's spread is about 0.03.)
+    assert abs(float(unrelated.mean()) - 0.25) < 0.02 and float(unrelated.max()) < 0.5
+
+
+def _plane_gradient(image: torch.Tensor) -> torch.Tensor:
+    """(B, 2, H, W) the central-difference gradient of an image's mean along the plane's x (columns)
+    and y (against the rows), the edges repeated: it mirrors with the image."""
+    level = F.pad(image.mean(dim=1, keepdim=True), (1, 1, 1, 1), mode="replicate")
+    along_x = (level[..., 1:-1, 2:] - level[..., 1:-1, :-2]) / 2
+    along_y = (level[..., :-2, 1:-1] - level[..., 2:, 1:-1]) / 2
+    return torch.cat([along_x, along_y], dim=1)
+
+
+@pytest.mark.parametrize("count", [2, 4])
+def test_the_mirror_images_readings_of_a_reading_that_mirrors_are_the_reading(count):
+    photo = torch.rand(1, 3, 40, 56, generator=torch.Generator().manual_seed(2))
+    lights = torch.tensor([[0.3, -0.2, 2.4]])
+
+    def mirroring(image: torch.Tensor, flashes: torch.Tensor) -> torch.Tensor:
+        # The image's gradient and the flash's direction across the plane: both mirror with the photo.
+        return _plane_gradient(image) + 0.1 * flashes[:, :2, None, None]
+
+    readings = detail.symmetric_readings(mirroring, photo, lights, count)
+    assert len(readings) == count
+    for reading in readings:
+        torch.testing.assert_close(reading, mirroring(photo, lights), atol=1e-6, rtol=0)
+
+    def fixed(image: torch.Tensor, flashes: torch.Tensor) -> torch.Tensor:
+        # A slope along +x whatever the photo: what the photo's mirror images must cancel.
+        return torch.tensor([1.0, 0.0]).view(1, 2, 1, 1).expand(1, 2, *image.shape[-2:])
+
+    moved_back = detail.symmetric_readings(fixed, photo, lights, count)
+    assert float((sum(moved_back) / count).abs().max()) == 0.0
+
+
+def test_fine_relief_reads_mirror_images_only():
+    with pytest.raises(ValueError, match="fine_relief reads 1, 2 or 4 mirror images, got 8"):
+        detail.fine_relief(None, torch.zeros(1, 3, 64, 64), torch.tensor([0.0, 0.0, 2.4]), 45.0, (32, 32),
+                           symmetries=8)
 
 
 def test_fine_relief_runs_at_most_at_its_size_on_a_multiple_of_the_units_levels(monkeypatch):
@@ -646,6 +705,29 @@ def test_capture_reads_the_fine_relief_when_asked_from_four_times_the_network_si
     # Read only when asked, from 4 times the network's size on, and where the relief test keeps relief.
     assert {key: value[0] for key, value in used.items() if value[0]} == {("relief", 128, True): True}
     assert used["relief", 128, True][1] and not used["grain", 128, True][1]
+
+
+def test_capture_reads_as_many_mirror_images_for_the_fine_relief_as_its_symmetries_up_to_two(tmp_path,
+                                                                                           monkeypatch):
+    from dataclasses import replace
+
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig, pipeline
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
+    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
+    asked = []
+    fine_relief = pipeline.fine_relief
+    monkeypatch.setattr(pipeline, "fine_relief", lambda *args, **kwargs: asked.append(kwargs["symmetries"])
+                        or fine_relief(*args, **kwargs))
+    for symmetries in (1, 2, 8):
+        capture_config = CaptureConfig(light=(0.25, -0.15), resolution=128, network_resolution=LOW,
+                                       symmetries=symmetries, refine=RefineConfig(steps=0))
+        Capturer(model, capture_config).capture(photo)
+    assert asked == [1, 2, detail.FINE_RELIEF_SYMMETRIES] and detail.FINE_RELIEF_SYMMETRIES == 2
 
 
 def test_the_fine_relief_strength_scales_the_relief_capture_adds_above_the_network(tmp_path):
