@@ -44,6 +44,13 @@ def _half_pixel_phase(size: int, sign: float, dims: int, dim: int, dtype: torch.
     return torch.polar(torch.ones_like(angle), angle).view(shape)
 
 
+def _from_the_far_end(values: torch.Tensor, dim: int) -> torch.Tensor:
+    """``values`` along ``dim`` read as x_(N-k), k = 0 .. N - 1, with x_N = 0: a 0, then the rest
+    reversed."""
+    rest = values.narrow(dim, 1, values.shape[dim] - 1)
+    return torch.cat([torch.zeros_like(values.narrow(dim, 0, 1)), rest.flip(dim)], dim)
+
+
 def cosine_transform(values: torch.Tensor, dim: int) -> torch.Tensor:
     """The unnormalised DCT-II of ``values`` along ``dim``: ``sum_n x_n cos(pi k (n + 1/2) / N)``,
     k = 0 .. N - 1, by one complex FFT of the same length (Makhoul 1980: the even samples, then the
@@ -58,10 +65,7 @@ def inverse_cosine_transform(coefficients: torch.Tensor, dim: int) -> torch.Tens
     / N)) / N``, by one complex inverse FFT."""
     size = coefficients.shape[dim]
     # C_k - i C_(N-k), C_N being 0, turned back by the phase cosine_transform gave it.
-    mirrored = torch.cat([torch.zeros_like(coefficients.narrow(dim, 0, 1)),
-                          coefficients.narrow(dim, 1, size - 1).flip(dim)], dim)
-    spectrum = torch.complex(coefficients, -mirrored)
-    del mirrored
+    spectrum = torch.complex(coefficients, -_from_the_far_end(coefficients, dim))
     spectrum.mul_(_half_pixel_phase(size, 1.0, coefficients.dim(), dim, coefficients.dtype))
     samples = torch.fft.ifft(spectrum, dim=dim).real
     del spectrum
@@ -77,9 +81,7 @@ def sine_transform(values: torch.Tensor, dim: int) -> torch.Tensor:
     shape = [1] * values.dim()
     shape[dim] = size
     signs = 1.0 - 2.0 * (torch.arange(size) % 2).to(values.dtype).view(shape)
-    transformed = cosine_transform(values * signs, dim)
-    return torch.cat([torch.zeros_like(transformed.narrow(dim, 0, 1)),
-                      transformed.narrow(dim, 1, size - 1).flip(dim)], dim)
+    return _from_the_far_end(cosine_transform(values * signs, dim), dim)
 
 
 def height_from_normals(normal: torch.Tensor, tileable: bool = False) -> torch.Tensor:
