@@ -183,6 +183,12 @@ class CaptureConfig:
             raise ValueError(f"relief_reader {self.relief_reader} applies only with fine_relief "
                              "(not with --no-fine-relief)")
 
+    @property
+    def fine_relief_symmetries(self) -> int:
+        """How many mirror images ``fine_relief`` reads (``detail.fine_relief``'s ``symmetries``):
+        no more than ``symmetries``, at most ``detail.FINE_RELIEF_SYMMETRIES``."""
+        return min(self.symmetries, FINE_RELIEF_SYMMETRIES)
+
 
 @dataclass(frozen=True)
 class Photo:
@@ -524,7 +530,7 @@ class Capturer:
             reader = loaded_reader(self.config.relief_reader) if self.config.relief_reader else None
             fine = fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte,
                                strength=self.config.fine_relief_strength, reader=reader, convention=self.convention,
-                               extent=extent, symmetries=min(self.config.symmetries, FINE_RELIEF_SYMMETRIES))
+                               extent=extent, symmetries=self.config.fine_relief_symmetries)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine, denoise_detail=self.config.denoise_detail,
                        colour_test=wide and self.config.colour_test,
@@ -605,7 +611,7 @@ class Capturer:
                                                                 "fine_relief": prediction.fine_slope is not None,
                                                                 "fine_relief_strength": config.fine_relief_strength,
                                                                 "fine_relief_symmetries": (
-                                                                    min(config.symmetries, FINE_RELIEF_SYMMETRIES)
+                                                                    config.fine_relief_symmetries
                                                                     if prediction.fine_slope is not None else None),
                                                                 "relief_reader": (Path(config.relief_reader).name
                                                                                   if prediction.fine_slope is not None
