@@ -43,11 +43,13 @@ With ``CaptureConfig.fine_relief`` (on by default) the normals' detail is read a
 once more on the photo itself (at up to ``FINE_RELIEF_SIZE``) and on its mirror images, its slope
 above the network's band averaged over them and weighted by where they agree (``mirror_agreement``:
 a relief's reading mirrors with the photo, the unit's misreadings of glints and grain do not) and by
-each pixel's diffuse share (glints are the specular's, not relief), times
-``FINE_RELIEF_STRENGTH``, put in place of the photo's contrast times the normals' gains, and
-scaled by the relief test's gain all the same. A metal has no diffuse shading for the unit to
-read: by each network pixel's metallic share (as the exports split the maps) the normals keep the
-gains' detail, the reading of the specular's shading.
+each pixel's diffuse share (glints are the specular's, not relief) and by the relief test's gain,
+times ``FINE_RELIEF_STRENGTH``, put in place of the photo's contrast times the normals' gains.
+Where the unit reads steep relief (``steep_share``) neither weight applies: the test reads steep
+relief as albedo (a relief's shading follows its own slope where that is steeper than the
+light's tilt), and grain and glints read as shallow relief. A metal has no diffuse shading for
+the unit to read: by each network pixel's metallic share (as the exports split the maps) the
+normals keep the gains' detail, the reading of the specular's shading.
 
 Fine normals, read either way, spread the specular lobe, and the refinement fitted the lobe to the
 photo without them: with ``add_detail``'s ``keep_lobe_peak`` (``CaptureConfig.keep_lobe_peak``)
@@ -300,10 +302,11 @@ FINE_RELIEF_MATTE_POWER = 1.0
 #: The factor of the relief the unit reads that capture gives the normals by default
 #: (``CaptureConfig.fine_relief_strength``): the reading itself, as its mirror images agree on it
 #: (``fine_relief``'s ``symmetries``). Chosen on the calibration set (``benchmarks/detail.py
-#: --first-seed 500001000 --seed 1``): the most that keeps the flat textured materials' made-up
-#: relief below the upsampled answer's (their normal RMSE with 2 readings 0.0146 at 1; with 4, 0.0146
-#: at 1 and 0.0155 at 1.5; upsampled 0.0150), where the relief's normal RMSE still falls (0.0692 at
-#: 1; with 4 readings 0.0693 at 1, 0.0680 at 1.5).
+#: --first-seed 500001000 --seed 1``, every reading weighted, before ``STEEP_RELIEF``): the most
+#: that keeps the flat textured materials' made-up relief below the upsampled answer's (their
+#: normal RMSE with 2 readings 0.0146 at 1; with 4, 0.0146 at 1 and 0.0155 at 1.5; upsampled
+#: 0.0150), where the relief's normal RMSE still falls (0.0692 at 1; with 4 readings 0.0693 at 1,
+#: 0.0680 at 1.5).
 #: A single reading at 1 gives card-blue's foil relief it does not have (benchmarks/README.md,
 #: detail: the fine relief's strength); agreeing mirror images do not.
 FINE_RELIEF_STRENGTH = 1.0
@@ -348,6 +351,36 @@ AGREEMENT_RADIUS = 8
 AGREEMENT_POWER = 2.0
 
 
+#: The unit's local RMS slope [slope units, per axis] over which its reading stops being weighted
+#: by the relief test's gain and the diffuse's share (``steep_share``): from the first value on it
+#: is kept more and more, from the second on whole. The relief test reads a relief's shading by its
+#: first-order term, the slope times the light's tilt (``relief_share``); where the slope is
+#: steeper than the tilt (an RMS of 0.34 - 0.40 over the detail benchmark's photos), the shading's
+#: gradients follow the relief's own slopes and the test reads them as albedo: a steep slate of the
+#: detail benchmark, rendered without specular and with one albedo, reads 0.29 relief, its slopes
+#: scaled by 0.1 read 0.88 (a script outside the repository). An albedo's grain and the specular's
+#: glints read as shallow relief (card-blue's photos: an RMS of 0.035 - 0.051 over each). Chosen on
+#: the calibration set (``benchmarks/detail.py --first-seed 500001000 --seed 1``) as the fine
+#: relief's strength was: the lowest of (0.25, 0.5), (0.2, 0.4) and (0.15, 0.3) that keeps the flat
+#: textured materials' normal RMSE below the upsampled answer's (0.01472, 0.01483, 0.01502 against
+#: 0.01498; the relief's 0.0687, 0.0683, 0.0681, every reading weighted 0.0692; benchmarks/README.md,
+#: detail: steep relief).
+STEEP_RELIEF = (0.2, 0.4)
+
+#: Radius of the windows ``steep_share`` measures the reading's RMS slope in [reading pixels].
+STEEP_RADIUS = 8
+
+
+def steep_share(slope: torch.Tensor, steep: tuple[float, float] | None = None,
+                radius: int = STEEP_RADIUS) -> torch.Tensor:
+    """(B, 1, H, W) in [0, 1], how steep a slope field (B, 2, H, W) is around each pixel: its RMS
+    slope per axis in windows of ``2 radius + 1`` pixels, 0 at and below ``steep[0]``
+    (``STEEP_RELIEF`` by default), 1 at and above ``steep[1]``, linear between."""
+    low, high = STEEP_RELIEF if steep is None else steep
+    rms = _box(slope.square().mean(dim=1, keepdim=True), radius).sqrt()
+    return ((rms - low) / (high - low)).clamp(0.0, 1.0)
+
+
 def mirror_agreement(readings: list[torch.Tensor], radius: int = AGREEMENT_RADIUS) -> torch.Tensor:
     """(B, 1, H, W) how far readings (B, 2, H, W) of one slope agree, in windows of ``2 radius + 1``
     pixels: the energy of their mean over their mean energy, 1 where they are the same, ``1 / n``
@@ -372,7 +405,7 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
                 low_size: tuple[int, int], max_size: int = FINE_RELIEF_SIZE,
                 matte: torch.Tensor | None = None, strength: float = 1.0, reader=None,
                 convention: str = constants.DEFAULT_CONVENTION, extent: float = 1.0,
-                symmetries: int = 1) -> torch.Tensor:
+                symmetries: int = 1, gain: float = 1.0) -> torch.Tensor:
     """The relief finer than the network's resolution as its normal unit reads it from the photo.
 
     The unit (``DeepBasisNet.normal_unit``, its octaves summed as in the network's pass) runs on
@@ -381,8 +414,9 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
     there the network's answer stays. With ``symmetries`` above 1 it reads the photo's mirror
     images too (``symmetric_readings``); their mean is weighted by their agreement
     (``mirror_agreement``) to the power ``AGREEMENT_POWER``. The slope is weighted by ``matte`` to
-    the power ``FINE_RELIEF_MATTE_POWER``: the relief is read where the photo shows the diffuse's
-    shading. ``strength`` scales it (``CaptureConfig.fine_relief_strength``).
+    the power ``FINE_RELIEF_MATTE_POWER`` (the relief is read where the photo shows the diffuse's
+    shading) and by ``gain``, the relief test's, but where the mean reading is steep
+    (``steep_share``): there by 1. ``strength`` scales it (``CaptureConfig.fine_relief_strength``).
 
     Args:
         model: a network with a normal unit; photo: (B, 3, H, W) linear; light: (B, 3) or (3,)
@@ -391,7 +425,8 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
         strength: the slope's factor, 1 the unit's own reading;
         reader: a relief reader (``model.relief_reader``) that reads the slope in the unit's place
             (``read_relief``, at up to ``max_size`` too), under ``convention`` and ``extent``;
-        symmetries: 1, 2 or 4 mirror images read (``mirror_images``).
+        symmetries: 1, 2 or 4 mirror images read (``mirror_images``);
+        gain: the relief test's (``photo_relief_gain``), in [0, 1].
 
     Returns:
         (B, 2, H', W') the x and y slope to add to the normals at the photo's size (bilinear up
@@ -418,15 +453,16 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
             return slope - upsample_bilinear(downsample(slope, low_size), *slope.shape[-2:])
 
     readings = symmetric_readings(read, seen, lights, symmetries)
-    slope = sum(readings) / len(readings)
-    if len(readings) > 1:
-        slope = slope * mirror_agreement(readings) ** AGREEMENT_POWER
+    mean = sum(readings) / len(readings)
+    slope = mean * mirror_agreement(readings) ** AGREEMENT_POWER if len(readings) > 1 else mean
     del readings
     release_freed_heap()
+    weight = torch.full_like(slope[:, :1], float(gain))
     if matte is not None:
-        weight = matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER
-        slope = slope * upsample_bilinear(weight, *slope.shape[-2:])
-    return slope * strength
+        share = matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER
+        weight = weight * upsample_bilinear(share, *slope.shape[-2:])
+    steep = steep_share(mean)
+    return slope * (weight + (1.0 - weight) * steep) * strength
 
 
 def _noise_bin(level: torch.Tensor) -> torch.Tensor:
@@ -651,9 +687,9 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             as albedo (``detail_gains``), and the network's normals lose that share of their band
             that follows the photo's contrast (relief made up from the albedo); capture passes
             ``1 - normal_gain``.
-        fine_slope: (B, 2, H', W') ``fine_relief``: the normals' detail, times ``normal_gain``, in
-            place of the photo's contrast times their gains but for the metallic share of each
-            network pixel (``metallic_shares``): a metal has no diffuse to read relief from, and
+        fine_slope: (B, 2, H', W') ``fine_relief``: the normals' detail (weighted by the relief
+            test's gain there), in place of the photo's contrast times their gains but for the
+            metallic share of each network pixel (``metallic_shares``): a metal has no diffuse to read relief from, and
             keeps that share of the gains' detail; None: the gains' detail everywhere.
         denoise: the photo's fine contrast denoised first (``denoise_contrast``, the noise measured
             from the photo by ``photo_noise``); False: as it is.
@@ -686,7 +722,7 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
         rows = max(factor, BAND_PIXELS // width // factor * factor) if banded else height
 
         guide_rows, gain_rows = _rows_at(low_guides, height, width), _rows_at(gains, height, width)
-        slope_rows = None if fine_slope is None else _rows_at(normal_gain * fine_slope.float(), height, width)
+        slope_rows = None if fine_slope is None else _rows_at(fine_slope.float(), height, width)
 
         # The detail, and what it holds below the network's resolution, which is taken out again:
         # the network's answer there stays as it is.

@@ -81,8 +81,9 @@ class CaptureConfig:
     fine_relief: bool = True
     """From 4 times the network's resolution on, read the normals' detail above it with the
     network's normal unit run on the photo itself and its half turn (``detail.fine_relief``, at up
-    to 1024 px; the mean of the two readings, weighted by where they agree and by each pixel's
-    diffuse share) instead of the photo's contrast times the normals' gains, which a metal keeps by
+    to 1024 px; the mean of the two readings, weighted by where they agree, by each pixel's
+    diffuse share and by the relief test's gain but where it reads steep relief, which that test
+    reads as albedo) instead of the photo's contrast times the normals' gains, which a metal keeps by
     its metallic share (it has no diffuse shading to read). The normal and re-rendering errors of
     held-out procedural relief, phone-like scenes and card-blue at 1024 px are lower than with the
     gains alone, and flat textured materials that the relief test reads as partly relief get less
@@ -530,7 +531,7 @@ class Capturer:
             reader = loaded_reader(self.config.relief_reader) if self.config.relief_reader else None
             fine = fine_relief(self.model, photo.pixels[None], light, photo.fov, low_size, matte=matte,
                                strength=self.config.fine_relief_strength, reader=reader, convention=self.convention,
-                               extent=extent, symmetries=self.config.fine_relief_symmetries)
+                               extent=extent, symmetries=self.config.fine_relief_symmetries, gain=normal_detail)
         return replace(prediction, output=output, detail_from=photo.pixels[None] if detailed else None,
                        fine_slope=fine, denoise_detail=self.config.denoise_detail,
                        colour_test=wide and self.config.colour_test,

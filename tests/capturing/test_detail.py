@@ -624,7 +624,9 @@ def test_fine_relief_runs_at_most_at_its_size_on_a_multiple_of_the_units_levels(
     assert seen == [torch.Size([256, 160])] and slope.shape == (1, 2, 256, 160)
 
 
-def test_a_fine_slope_takes_the_normals_gains_place_scaled_by_the_relief_gain():
+def test_a_fine_slope_takes_the_normals_gains_place_as_it_is():
+    """``fine_relief`` weighs its slope by the relief test's gain itself: ``add_detail`` adds it as it
+    is, whatever the gain it scales the normals' gains by."""
     albedo, photo = textured_scene(4)
     low, maps = upsampled_answer(albedo)
     generator = torch.Generator().manual_seed(5)
@@ -638,14 +640,66 @@ def test_a_fine_slope_takes_the_normals_gains_place_scaled_by_the_relief_gain():
     flat = tilts(0.0, None)  # the normals as upsampled: the network's answer has flat normals here
     expected = upsample_bilinear(slope, SIZE, SIZE)
     expected = expected - upsample_bilinear(downsample(expected, LOW), SIZE, SIZE)  # what capture keeps below
-    for gain in (1.0, 0.5):
+    for gain in (1.0, 0.5, 0.0):
         added = tilts(gain, slope) - flat
-        assert torch.allclose(added, gain * expected, atol=TOLERANCES["fine_slope_kept"])
-    assert torch.allclose(tilts(0.0, slope), flat, atol=1e-6)
+        assert torch.allclose(added, expected, atol=TOLERANCES["fine_slope_kept"])
     # The reflectance is the same with the fine slope as without it.
     with_slope = detail.add_detail(maps.clone(), photo, low, fine_slope=slope)
     without = detail.add_detail(maps.clone(), photo, low)
     assert torch.equal(with_slope[:, constants.REFLECTANCE], without[:, constants.REFLECTANCE])
+
+
+def _alternating_field(amplitude: torch.Tensor) -> torch.Tensor:
+    """(1, 2, H, W) a slope of the given amplitude (1, 1, H, W) at each pixel whose sign alternates
+    from pixel to pixel (x in a checkerboard, y from row to row): its RMS per axis in any window is
+    the amplitude's there, and its mean over any block of even sides, where the amplitude is one, 0."""
+    rows = torch.arange(amplitude.shape[-2]).view(-1, 1)
+    columns = torch.arange(amplitude.shape[-1]).view(1, -1)
+    signs = torch.stack([(-1.0) ** (rows + columns), (-1.0) ** rows.expand_as(rows + columns)])[None]
+    return signs * amplitude
+
+
+def test_steep_share_ramps_from_the_first_rms_slope_to_the_second():
+    low, high = detail.STEEP_RELIEF
+    for rms, share in ((0.5 * low, 0.0), (low, 0.0), ((low + high) / 2, 0.5), (high, 1.0), (2 * high, 1.0)):
+        field = _alternating_field(torch.full((1, 1, 40, 40), rms))
+        torch.testing.assert_close(detail.steep_share(field), torch.full((1, 1, 40, 40), share), atol=1e-5, rtol=0)
+
+
+class _FixedUnit(torch.nn.Module):
+    """A normal unit that reads one fixed slope whatever the photo (``fine_relief``'s interface)."""
+
+    def __init__(self, slope: torch.Tensor):
+        super().__init__()
+        from types import SimpleNamespace
+
+        self.config = SimpleNamespace(normal_unit_stride=32)
+        self.slope = torch.nn.Parameter(slope, requires_grad=False)
+
+    def relief_inputs(self, photo, lights, fov):
+        return photo
+
+    def octave_slope(self, inputs):
+        return self.slope
+
+
+def test_fine_relief_weighs_a_shallow_reading_by_the_gain_and_the_diffuse_share_and_a_steep_one_by_neither():
+    size, low_size = 128, (8, 8)
+    low, high = detail.STEEP_RELIEF
+    # Shallow on the left half, steep on the right; alternating from pixel to pixel, so nothing of
+    # it lies at or below the network's band (8 px) to be taken out.
+    amplitude = torch.full((1, 1, size, size), 0.5 * low)
+    amplitude[..., size // 2:] = 2 * high
+    slope = _alternating_field(amplitude)
+    unit = _FixedUnit(slope)
+    photo, light = torch.full((1, 3, size, size), 0.3), torch.tensor([0.1, 0.2, 2.4])
+    matte = torch.full((16, 16), 0.5)
+    read = detail.fine_relief(unit, photo, light, 45.0, low_size, matte=matte, gain=0.4, strength=2.0)
+    margin = detail.STEEP_RADIUS + 1  # the windows of the steepness reach across the border
+    shallow, steep = (..., slice(0, size // 2 - margin)), (..., slice(size // 2 + margin, size))
+    weight = 0.4 * 0.5 ** detail.FINE_RELIEF_MATTE_POWER
+    torch.testing.assert_close(read[shallow], 2.0 * weight * slope[shallow], atol=1e-5, rtol=0)
+    torch.testing.assert_close(read[steep], 2.0 * slope[steep], atol=1e-5, rtol=0)
 
 
 def test_with_a_fine_slope_a_metal_keeps_the_normals_gains_detail_and_a_dielectric_none():
@@ -728,6 +782,29 @@ def test_capture_reads_as_many_mirror_images_for_the_fine_relief_as_its_symmetri
                                        symmetries=symmetries, refine=RefineConfig(steps=0))
         Capturer(model, capture_config).capture(photo)
     assert asked == [1, 2, detail.FINE_RELIEF_SYMMETRIES] and detail.FINE_RELIEF_SYMMETRIES == 2
+
+
+def test_capture_gives_the_fine_relief_the_relief_tests_gain_to_weigh_its_reading_by(tmp_path, monkeypatch):
+    from dataclasses import replace
+
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig, pipeline
+    from mideepbasis.model.checkpoint import save_checkpoint
+    from mideepbasis.model.network import DeepBasisNet, preset
+
+    torch.manual_seed(0)
+    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
+    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
+    given = []
+    fine_relief = pipeline.fine_relief
+    monkeypatch.setattr(pipeline, "fine_relief", lambda *args, **kwargs: given.append(kwargs["gain"])
+                        or fine_relief(*args, **kwargs))
+    # A gain of its own, so that what reaches the fine relief is told from a 1 it might be given.
+    monkeypatch.setattr(pipeline, "photo_relief_gain", lambda *args, **kwargs: 0.37)
+    capture_config = CaptureConfig(light=(0.25, -0.15), resolution=128, network_resolution=LOW, symmetries=1,
+                                   refine=RefineConfig(steps=0))
+    provenance = Capturer(model, capture_config).capture(photo).material.provenance["capture"]
+    assert given == [0.37] and provenance["normal_detail"] == 0.37
 
 
 def test_the_fine_relief_strength_scales_the_relief_capture_adds_above_the_network(tmp_path):
@@ -854,9 +931,11 @@ def test_a_relief_reader_reads_the_fine_relief_in_the_units_place(tmp_path, caps
     assert capsys.readouterr().err.strip() == f"mideepbasis: error: capture: {message}"
 
 
-def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power():
+def test_fine_relief_is_weighted_by_the_diffuse_share_to_its_power(monkeypatch):
     from mideepbasis.model.checkpoint import load_model
 
+    # No reading counts as steep here: steep relief, which no weight holds back, is tested on its own.
+    monkeypatch.setattr(detail, "STEEP_RELIEF", (1e6, 2e6))
     model = load_model()
     photo, light = _flash_photo(_matte_relief("concrete", 1, 128))
 
