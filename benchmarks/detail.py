@@ -293,8 +293,9 @@ def summarise(records: list[dict], labels: tuple[str, ...]) -> dict:
 def relief_test_bound(records: list[dict]) -> float:
     """The normals' pooled detail ratio a detail step would give if it added each material's true
     fine relief times the relief test's gain (``normal_detail``): ``sum g^2 E / sum E``, E the
-    truth's fine energy. A detail step that follows the relief test reaches more only by giving
-    some material more fine relief than its truth has."""
+    truth's fine energy. A detail step that follows the relief test everywhere reaches more only by
+    giving some material more fine relief than its truth has; capture's fine relief lifts the
+    test's gain where the unit reads steep relief (``detail.steep_share``), which this does not count."""
     total = sum(r["truth_energy"]["normal"] for r in records)
     return sum(r["normal_detail"] ** 2 * r["truth_energy"]["normal"] for r in records) / total
 
