@@ -735,17 +735,23 @@ def test_with_a_fine_slope_a_metal_keeps_the_normals_gains_detail_and_a_dielectr
     assert float(with_slope[..., dielectric].abs().max()) < TOLERANCES["fine_slope_kept"]
 
 
-def test_capture_reads_the_fine_relief_when_asked_from_four_times_the_network_size_where_the_test_reads_relief(
-        tmp_path):
+def _model_with_a_small_normal_unit(tmp_path) -> torch.nn.Module:
+    """A tiny network with a small normal unit, random weights of seed 0, as a checkpoint loads it."""
     from dataclasses import replace
 
-    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
     from mideepbasis.model.checkpoint import save_checkpoint
     from mideepbasis.model.network import DeepBasisNet, preset
 
     torch.manual_seed(0)
     config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
-    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    return save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+
+
+def test_capture_reads_the_fine_relief_when_asked_from_four_times_the_network_size_where_the_test_reads_relief(
+        tmp_path):
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
+
+    model = _model_with_a_small_normal_unit(tmp_path)
     used = {}
     for surface, make in (("relief", lambda size: matte_egg_crate(size, cycles=24, slope=0.15)),
                           ("grain", _plain_grain)):
@@ -763,15 +769,9 @@ def test_capture_reads_the_fine_relief_when_asked_from_four_times_the_network_si
 
 def test_capture_reads_as_many_mirror_images_for_the_fine_relief_as_its_symmetries_up_to_two(tmp_path,
                                                                                            monkeypatch):
-    from dataclasses import replace
-
     from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig, pipeline
-    from mideepbasis.model.checkpoint import save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, preset
 
-    torch.manual_seed(0)
-    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
-    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    model = _model_with_a_small_normal_unit(tmp_path)
     photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
     asked = []
     fine_relief = pipeline.fine_relief
@@ -785,15 +785,9 @@ def test_capture_reads_as_many_mirror_images_for_the_fine_relief_as_its_symmetri
 
 
 def test_capture_gives_the_fine_relief_the_relief_tests_gain_to_weigh_its_reading_by(tmp_path, monkeypatch):
-    from dataclasses import replace
-
     from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig, pipeline
-    from mideepbasis.model.checkpoint import save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, preset
 
-    torch.manual_seed(0)
-    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
-    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    model = _model_with_a_small_normal_unit(tmp_path)
     photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
     given = []
     fine_relief = pipeline.fine_relief
@@ -808,15 +802,9 @@ def test_capture_gives_the_fine_relief_the_relief_tests_gain_to_weigh_its_readin
 
 
 def test_the_fine_relief_strength_scales_the_relief_capture_adds_above_the_network(tmp_path):
-    from dataclasses import replace
-
     from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
-    from mideepbasis.model.checkpoint import save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, preset
 
-    torch.manual_seed(0)
-    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
-    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    model = _model_with_a_small_normal_unit(tmp_path)
     photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
 
     def fine_tilts(strength: float) -> torch.Tensor:
@@ -888,18 +876,12 @@ def test_the_colour_test_under_the_fine_relief_is_refused_in_one_line(tmp_path, 
 
 
 def test_a_relief_reader_reads_the_fine_relief_in_the_units_place(tmp_path, capsys):
-    from dataclasses import replace
-
     from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
     from mideepbasis.capturing.pipeline import flash_position
     from mideepbasis.cli import main
-    from mideepbasis.model.checkpoint import save_checkpoint
-    from mideepbasis.model.network import DeepBasisNet, preset
     from mideepbasis.model.relief_reader import ReliefReader, ReliefReaderConfig, read_relief, save_reader
 
-    torch.manual_seed(0)
-    config = replace(preset("tiny"), normal_unit_width=4, normal_unit_blocks=(1, 1, 1), normal_unit_octaves=(1.0, 0.5))
-    model = save_checkpoint(tmp_path / "unit.safetensors", DeepBasisNet(config).eval())
+    model = _model_with_a_small_normal_unit(tmp_path)
     reader = ReliefReader(ReliefReaderConfig(width=4, encoder_blocks=(1, 1), middle_blocks=1))
     with torch.no_grad():  # a reader that reads a strong relief from anything
         reader.net.ending.bias.fill_(0.2)
