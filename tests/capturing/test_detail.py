@@ -767,20 +767,29 @@ def test_capture_reads_the_fine_relief_when_asked_from_four_times_the_network_si
     assert used["relief", 128, True][1] and not used["grain", 128, True][1]
 
 
+def _fine_relief_calls(monkeypatch) -> list[dict]:
+    """The keyword arguments of each call capture makes to ``fine_relief`` from here on (it still runs)."""
+    from mideepbasis.capturing import pipeline
+
+    calls = []
+    fine_relief = pipeline.fine_relief
+    monkeypatch.setattr(pipeline, "fine_relief", lambda *args, **kwargs: calls.append(kwargs)
+                        or fine_relief(*args, **kwargs))
+    return calls
+
+
 def test_capture_reads_as_many_mirror_images_for_the_fine_relief_as_its_symmetries_up_to_two(tmp_path,
                                                                                            monkeypatch):
-    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig, pipeline
+    from mideepbasis.capturing import CaptureConfig, Capturer, RefineConfig
 
     model = _model_with_a_small_normal_unit(tmp_path)
     photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
-    asked = []
-    fine_relief = pipeline.fine_relief
-    monkeypatch.setattr(pipeline, "fine_relief", lambda *args, **kwargs: asked.append(kwargs["symmetries"])
-                        or fine_relief(*args, **kwargs))
+    calls = _fine_relief_calls(monkeypatch)
     for symmetries in (1, 2, 8):
         capture_config = CaptureConfig(light=(0.25, -0.15), resolution=128, network_resolution=LOW,
                                        symmetries=symmetries, refine=RefineConfig(steps=0))
         Capturer(model, capture_config).capture(photo)
+    asked = [call["symmetries"] for call in calls]
     assert asked == [1, 2, detail.FINE_RELIEF_SYMMETRIES] and detail.FINE_RELIEF_SYMMETRIES == 2
 
 
@@ -789,16 +798,13 @@ def test_capture_gives_the_fine_relief_the_relief_tests_gain_to_weigh_its_readin
 
     model = _model_with_a_small_normal_unit(tmp_path)
     photo, _ = _flash_photo(matte_egg_crate(128, cycles=24, slope=0.15))
-    given = []
-    fine_relief = pipeline.fine_relief
-    monkeypatch.setattr(pipeline, "fine_relief", lambda *args, **kwargs: given.append(kwargs["gain"])
-                        or fine_relief(*args, **kwargs))
+    calls = _fine_relief_calls(monkeypatch)
     # A gain of its own, so that what reaches the fine relief is told from a 1 it might be given.
     monkeypatch.setattr(pipeline, "photo_relief_gain", lambda *args, **kwargs: 0.37)
     capture_config = CaptureConfig(light=(0.25, -0.15), resolution=128, network_resolution=LOW, symmetries=1,
                                    refine=RefineConfig(steps=0))
     provenance = Capturer(model, capture_config).capture(photo).material.provenance["capture"]
-    assert given == [0.37] and provenance["normal_detail"] == 0.37
+    assert [call["gain"] for call in calls] == [0.37] and provenance["normal_detail"] == 0.37
 
 
 def test_the_fine_relief_strength_scales_the_relief_capture_adds_above_the_network(tmp_path):
