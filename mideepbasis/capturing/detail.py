@@ -457,7 +457,7 @@ def fine_relief(model: DeepBasisNet, photo: torch.Tensor, light: torch.Tensor, f
     slope = mean * mirror_agreement(readings) ** AGREEMENT_POWER if len(readings) > 1 else mean
     del readings
     release_freed_heap()
-    weight = torch.full_like(slope[:, :1], float(gain))
+    weight = float(gain)
     if matte is not None:
         share = matte.float().to(slope.device)[None, None] ** FINE_RELIEF_MATTE_POWER
         weight = weight * upsample_bilinear(share, *slope.shape[-2:])
@@ -689,8 +689,9 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
             ``1 - normal_gain``.
         fine_slope: (B, 2, H', W') ``fine_relief``: the normals' detail (weighted by the relief
             test's gain there), in place of the photo's contrast times their gains but for the
-            metallic share of each network pixel (``metallic_shares``): a metal has no diffuse to read relief from, and
-            keeps that share of the gains' detail; None: the gains' detail everywhere.
+            metallic share of each network pixel (``metallic_shares``): a metal has no diffuse to
+            read relief from, and keeps that share of the gains' detail; None: the gains' detail
+            everywhere.
         denoise: the photo's fine contrast denoised first (``denoise_contrast``, the noise measured
             from the photo by ``photo_noise``); False: as it is.
         keep_lobe_peak: narrow the roughness where the normals get detail, so that each network
