@@ -682,17 +682,17 @@ def add_detail(maps: torch.Tensor, photo: torch.Tensor, low_maps: torch.Tensor,
         maps: (B, 10, H, W) the maps at the working resolution (changed in place and returned).
         photo: (B, 3, H, W) linear, the photo they were captured from.
         low_maps: (B, 10, h, w) the network's maps at its own resolution (h < H).
-        normal_gain: the share of the normals' detail kept (``relief_gain``): 0 where the photo's
-            fine contrast reads as albedo alone.
+        normal_gain: the share of the gains' normal detail kept (``relief_gain``): 0 where the
+            photo's fine contrast reads as albedo alone. A ``fine_slope`` is added as it is.
         albedo_share: the share of the photo's fine contrast read as albedo: the diffuse takes it
             as albedo (``detail_gains``), and the network's normals lose that share of their band
             that follows the photo's contrast (relief made up from the albedo); capture passes
             ``1 - normal_gain``.
         fine_slope: (B, 2, H', W') ``fine_relief``: the normals' detail (weighted by the relief
-            test's gain there), in place of the photo's contrast times their gains but for the
-            metallic share of each network pixel (``metallic_shares``): a metal has no diffuse to
-            read relief from, and keeps that share of the gains' detail; None: the gains' detail
-            everywhere.
+            test's gain there but where it reads steep relief), in place of the photo's contrast
+            times their gains but for the metallic share of each network pixel
+            (``metallic_shares``): a metal has no diffuse to read relief from, and keeps that share
+            of the gains' detail; None: the gains' detail everywhere.
         denoise: the photo's fine contrast denoised first (``denoise_contrast``, the noise measured
             from the photo by ``photo_noise``); False: as it is.
         keep_lobe_peak: narrow the roughness where the normals get detail, so that each network
